@@ -1,0 +1,104 @@
+//! Key expressions (Zenoh) and service names (iceoryx2) derived from a map id.
+
+use thiserror::Error;
+
+/// A map id is not usable inside a key expression.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("invalid map id {0:?}: use 1-64 characters from [A-Za-z0-9_-]")]
+pub struct InvalidMapId(pub String);
+
+/// Query kinds served under `rangegp/<map_id>/query/<kind>`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QueryKind {
+    /// Elevation (z mean and variance) at (x, y).
+    Elevation,
+    /// Elevation variance only, the cheap path.
+    Variance,
+    /// Expected hit along rays.
+    Ray,
+}
+
+impl QueryKind {
+    /// Every kind, for declaring queryables.
+    pub const ALL: [QueryKind; 3] = [QueryKind::Elevation, QueryKind::Variance, QueryKind::Ray];
+
+    /// The last key chunk of this kind.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            QueryKind::Elevation => "elevation",
+            QueryKind::Variance => "variance",
+            QueryKind::Ray => "ray",
+        }
+    }
+}
+
+/// Validated map id with the key expressions that hang off it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MapKeys {
+    map_id: String,
+}
+
+impl MapKeys {
+    /// Validates `map_id` (so that no wildcard or separator can leak into a key expression).
+    pub fn new(map_id: &str) -> Result<Self, InvalidMapId> {
+        let ok = !map_id.is_empty()
+            && map_id.len() <= 64
+            && map_id
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+        if ok {
+            Ok(Self {
+                map_id: map_id.to_owned(),
+            })
+        } else {
+            Err(InvalidMapId(map_id.to_owned()))
+        }
+    }
+
+    /// The map id.
+    pub fn map_id(&self) -> &str {
+        &self.map_id
+    }
+
+    /// `rangegp/<map_id>/query/<kind>`.
+    pub fn query(&self, kind: QueryKind) -> String {
+        format!("rangegp/{}/query/{}", self.map_id, kind.as_str())
+    }
+
+    /// `rangegp/<map_id>/status`.
+    pub fn status(&self) -> String {
+        format!("rangegp/{}/status", self.map_id)
+    }
+
+    /// `rangegp/<map_id>/@alive`, the daemon's liveliness token.
+    pub fn alive(&self) -> String {
+        format!("rangegp/{}/@alive", self.map_id)
+    }
+
+    /// Default iceoryx2 service name for scans of this map: `rangegp/<map_id>/scans`.
+    pub fn scan_service(&self) -> String {
+        format!("rangegp/{}/scans", self.map_id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_are_built_from_a_valid_id() {
+        let k = MapKeys::new("rover_1").expect("valid id");
+        assert_eq!(k.query(QueryKind::Elevation), "rangegp/rover_1/query/elevation");
+        assert_eq!(k.status(), "rangegp/rover_1/status");
+        assert_eq!(k.alive(), "rangegp/rover_1/@alive");
+        assert_eq!(k.scan_service(), "rangegp/rover_1/scans");
+    }
+
+    #[test]
+    fn wildcards_and_separators_are_refused() {
+        for bad in ["", "a/b", "*", "a**", "x$y", "@a", "ü"] {
+            assert!(MapKeys::new(bad).is_err(), "{bad:?} accepted");
+        }
+        assert!(MapKeys::new(&"a".repeat(65)).is_err());
+    }
+}

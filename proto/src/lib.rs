@@ -1,0 +1,16 @@
+//! The wire contract of rangegp, shared by the daemon, the client and foreign-language peers.
+//!
+//! - [`scan`]: `#[repr(C)]` shared-memory types published over iceoryx2 (header + point slice).
+//! - [`msg`]: serde request / reply types for the Zenoh queries, each carrying [`PROTOCOL_VERSION`].
+//! - [`codec`]: the one encode / decode pair (bincode 2 by default, JSON on request).
+//! - [`keys`]: key-expression and service-name builders.
+//!
+//! The byte layout and the rules are written out in `docs/PROTOCOL.md`.
+
+pub mod codec;
+pub mod keys;
+pub mod msg;
+pub mod scan;
+
+/// Version of the whole contract (shared-memory layout and query messages); bumped on any change.
+pub const PROTOCOL_VERSION: u32 = 1;

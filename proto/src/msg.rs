@@ -1,0 +1,215 @@
+//! Query requests and replies (serde). Every message carries the protocol version; every batch
+//! item answers the request item at the same index.
+
+use serde::{Deserialize, Serialize};
+
+/// Elevation at map-frame (x, y) points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ElevationRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+    /// Query points (x, y) in the map frame, metres.
+    pub points: Vec<[f64; 2]>,
+}
+
+/// Where an answer came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Source {
+    /// A local range map of a recent scan.
+    Window,
+    /// The aggregate map of everything seen.
+    Aggregate,
+    /// No map covers the query: no value is given.
+    None,
+}
+
+/// One elevation answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ElevationItem {
+    /// Predicted surface height, metres (absent when `source` is `none`).
+    pub z_m: Option<f64>,
+    /// Variance of `z_m`, square metres (latent surface, sensor noise excluded).
+    pub z_var_m2: Option<f64>,
+    /// Which map answered.
+    pub source: Source,
+    /// True when the point lies inside the field of view the answering map observed.
+    pub observed: bool,
+}
+
+/// Elevation answers, one per request point.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ElevationReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Answers in request order.
+    pub items: Vec<ElevationItem>,
+}
+
+/// Elevation variance only at map-frame (x, y) points (the cheap path for planners' cost maps).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VarianceRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+    /// Query points (x, y) in the map frame, metres.
+    pub points: Vec<[f64; 2]>,
+}
+
+/// One variance answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VarianceItem {
+    /// Variance of the surface height, square metres (absent when `source` is `none`).
+    pub z_var_m2: Option<f64>,
+    /// Which map answered.
+    pub source: Source,
+}
+
+/// Variance answers, one per request point.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VarianceReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Answers in request order.
+    pub items: Vec<VarianceItem>,
+}
+
+/// One ray to cast through the map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Ray {
+    /// Ray origin in the map frame, metres.
+    pub origin_m: [f64; 3],
+    /// Direction in the map frame (normalised by the server; must be non-zero).
+    pub direction: [f64; 3],
+    /// Cast no further than this, metres.
+    pub max_range_m: f64,
+}
+
+/// Rays to cast.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RayRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+    /// Rays in the map frame.
+    pub rays: Vec<Ray>,
+}
+
+/// One ray answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RayItem {
+    /// Expected distance from the origin to the surface, metres (absent when no hit is predicted).
+    pub range_m: Option<f64>,
+    /// Variance of `range_m`, square metres.
+    pub range_var_m2: Option<f64>,
+    /// Probability that the ray meets the surface before `max_range_m`.
+    pub hit_probability: f64,
+    /// Expected hit point in the map frame, metres.
+    pub hit_point_m: Option<[f64; 3]>,
+    /// Which map answered.
+    pub source: Source,
+}
+
+/// Ray answers, one per request ray.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RayReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Answers in request order.
+    pub items: Vec<RayItem>,
+}
+
+/// Ask for the daemon's counters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StatusRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+}
+
+/// How many scans were rejected for one reason.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RejectionCount {
+    /// Stable snake_case reason (see `docs/PROTOCOL.md`).
+    pub reason: String,
+    /// Scans rejected for it since start.
+    pub count: u64,
+}
+
+/// Kernel hyperparameters in use.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HyperparametersInfo {
+    /// Kernel name.
+    pub kernel: String,
+    /// Kernel variance σ², square metres.
+    pub variance: f64,
+    /// Length scale on the range sphere, metres of chord.
+    pub length_scale: f64,
+    /// Noise variance added to every training ray on top of the sensor model, square metres.
+    pub nugget: f64,
+}
+
+/// The daemon's state and counters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StatusReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Map id served.
+    pub map_id: String,
+    /// Seconds since the daemon started.
+    pub uptime_s: f64,
+    /// Scans taken from shared memory.
+    pub scans_received: u64,
+    /// Scans that passed validation and were fitted into the window.
+    pub scans_accepted: u64,
+    /// Scans rejected (sum over reasons).
+    pub scans_rejected: u64,
+    /// Rejections by reason (every reason listed, zeros included).
+    pub rejections: Vec<RejectionCount>,
+    /// Valid scans dropped because fitting fell behind (newest wins).
+    pub scans_skipped: u64,
+    /// Missing sequence numbers observed, summed over publishers.
+    pub sequence_gaps: u64,
+    /// Local maps in the window now.
+    pub window_len: u32,
+    /// Window capacity.
+    pub window_capacity: u32,
+    /// Hyperparameters in use.
+    pub hyperparameters: HyperparametersInfo,
+    /// Duration of the last fit, milliseconds.
+    pub fit_ms_last: f64,
+    /// Mean fit duration since start, milliseconds.
+    pub fit_ms_mean: f64,
+    /// Queries answered successfully.
+    pub queries_ok: u64,
+    /// Queries answered with an error.
+    pub queries_failed: u64,
+}
+
+/// Machine-readable error class of a failed query.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// The request's protocol version is not the daemon's.
+    UnsupportedVersion,
+    /// The payload could not be decoded as the expected request.
+    MalformedRequest,
+    /// The batch exceeds the configured limit.
+    BatchTooLarge,
+    /// A value in the request is out of its domain (non-finite, zero direction, ...).
+    InvalidArgument,
+    /// The daemon has no map yet.
+    NoMap,
+    /// The daemon is shedding load; retry later.
+    Overloaded,
+    /// A bug or resource failure on the daemon's side.
+    Internal,
+}
+
+/// Payload of every `reply_err`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ErrorReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Error class.
+    pub code: ErrorCode,
+    /// Human-readable detail.
+    pub message: String,
+}

@@ -1,0 +1,150 @@
+//! Shared-memory scan types: one [`ScanHeader`] (iceoryx2 user header) and a slice of [`ScanPoint`].
+//!
+//! Layouts are fixed (`#[repr(C)]`, explicit reserved fields, no implicit padding) and checked by
+//! tests below so that C++ and Python mirrors stay byte-identical. See `docs/PROTOCOL.md`.
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Type name the iceoryx2 service registers for the header (Python / C++ mirrors must match).
+pub const SCAN_HEADER_TYPE_NAME: &str = "rangegp::ScanHeader";
+/// Type name the iceoryx2 service registers for one point (Python / C++ mirrors must match).
+pub const SCAN_POINT_TYPE_NAME: &str = "rangegp::ScanPoint";
+
+/// Metadata of one LiDAR scan: who sent it, when, from where, and the sensor model.
+///
+/// The pose is the sensor frame in the map frame (REP-103: x forward, y left, z up); the
+/// quaternion is Hamilton, unit norm, with its components named (`qw` is the scalar part).
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("rangegp::ScanHeader")]
+#[repr(C)]
+pub struct ScanHeader {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub protocol_version: u32,
+    /// Number of valid entries in the point slice (the slice may be longer, never shorter).
+    pub point_count: u32,
+    /// Stable id of the publishing process or driver; sequences are tracked per publisher.
+    pub publisher_id: u64,
+    /// Per-publisher sequence number, strictly increasing by one per scan.
+    pub sequence: u64,
+    /// Acquisition time, nanoseconds since the Unix epoch.
+    pub stamp_ns: u64,
+    /// Sensor position in the map frame, metres.
+    pub px_m: f64,
+    /// Sensor position y, metres.
+    pub py_m: f64,
+    /// Sensor position z, metres.
+    pub pz_m: f64,
+    /// Orientation quaternion, x component.
+    pub qx: f64,
+    /// Orientation quaternion, y component.
+    pub qy: f64,
+    /// Orientation quaternion, z component.
+    pub qz: f64,
+    /// Orientation quaternion, scalar component.
+    pub qw: f64,
+    /// Maximum range of the sensor, metres; returns at or beyond it are treated as no-return.
+    pub max_range_m: f64,
+    /// Range noise standard deviation per metre of range (σ_i = coefficient · r_i), dimensionless.
+    pub range_noise_per_m: f64,
+}
+
+impl Default for ScanHeader {
+    fn default() -> Self {
+        Self {
+            protocol_version: crate::PROTOCOL_VERSION,
+            point_count: 0,
+            publisher_id: 0,
+            sequence: 0,
+            stamp_ns: 0,
+            px_m: 0.0,
+            py_m: 0.0,
+            pz_m: 0.0,
+            qx: 0.0,
+            qy: 0.0,
+            qz: 0.0,
+            qw: 1.0,
+            max_range_m: 0.0,
+            range_noise_per_m: 0.0,
+        }
+    }
+}
+
+/// Point flag: the ray produced no return (range is ignored).
+pub const FLAG_NO_RETURN: u16 = 1;
+/// Point flag: `ring` and `column` carry the driver's indices.
+pub const FLAG_RING_COLUMN_VALID: u16 = 2;
+
+/// One LiDAR ray in the sensor frame, stored as the driver measured it (no xyz round trip).
+///
+/// Inclination is the polar angle from the sensor's +z axis (π/2 is horizontal), azimuth is
+/// `atan2(y, x)` in the sensor frame, both in radians.
+#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[type_name("rangegp::ScanPoint")]
+#[repr(C)]
+pub struct ScanPoint {
+    /// Measured range, metres.
+    pub range_m: f32,
+    /// Polar angle from the sensor's +z axis, radians, in [0, π].
+    pub inclination_rad: f32,
+    /// Azimuth `atan2(y, x)` in the sensor frame, radians, in [−π, π].
+    pub azimuth_rad: f32,
+    /// Laser ring index (valid with [`FLAG_RING_COLUMN_VALID`]).
+    pub ring: u16,
+    /// Firing column index (valid with [`FLAG_RING_COLUMN_VALID`]).
+    pub column: u16,
+    /// Bit set of `FLAG_*` values; unknown bits are rejected.
+    pub flags: u16,
+    /// Must be zero.
+    pub reserved: u16,
+}
+
+impl ScanPoint {
+    /// True when the ray produced a return.
+    pub fn has_return(&self) -> bool {
+        self.flags & FLAG_NO_RETURN == 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use core::mem::{align_of, offset_of, size_of};
+
+    #[test]
+    fn header_layout_is_the_documented_one() {
+        assert_eq!(size_of::<ScanHeader>(), 104);
+        assert_eq!(align_of::<ScanHeader>(), 8);
+        assert_eq!(offset_of!(ScanHeader, protocol_version), 0);
+        assert_eq!(offset_of!(ScanHeader, point_count), 4);
+        assert_eq!(offset_of!(ScanHeader, publisher_id), 8);
+        assert_eq!(offset_of!(ScanHeader, sequence), 16);
+        assert_eq!(offset_of!(ScanHeader, stamp_ns), 24);
+        assert_eq!(offset_of!(ScanHeader, px_m), 32);
+        assert_eq!(offset_of!(ScanHeader, qx), 56);
+        assert_eq!(offset_of!(ScanHeader, qw), 80);
+        assert_eq!(offset_of!(ScanHeader, max_range_m), 88);
+        assert_eq!(offset_of!(ScanHeader, range_noise_per_m), 96);
+    }
+
+    #[test]
+    fn point_layout_is_the_documented_one() {
+        assert_eq!(size_of::<ScanPoint>(), 20);
+        assert_eq!(align_of::<ScanPoint>(), 4);
+        assert_eq!(offset_of!(ScanPoint, range_m), 0);
+        assert_eq!(offset_of!(ScanPoint, inclination_rad), 4);
+        assert_eq!(offset_of!(ScanPoint, azimuth_rad), 8);
+        assert_eq!(offset_of!(ScanPoint, ring), 12);
+        assert_eq!(offset_of!(ScanPoint, column), 14);
+        assert_eq!(offset_of!(ScanPoint, flags), 16);
+        assert_eq!(offset_of!(ScanPoint, reserved), 18);
+    }
+
+    #[test]
+    fn type_names_are_stable() {
+        // SAFETY: type_name only returns a static string.
+        unsafe {
+            assert_eq!(<ScanHeader as ZeroCopySend>::type_name(), SCAN_HEADER_TYPE_NAME);
+            assert_eq!(<ScanPoint as ZeroCopySend>::type_name(), SCAN_POINT_TYPE_NAME);
+        }
+    }
+}
