@@ -1,0 +1,166 @@
+//! An exact GP regression: K + Σ = L Lᵀ, α = (K + Σ)⁻¹ y; posterior mean and latent variance.
+
+use super::cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
+use super::kernel::Matern32;
+use faer::linalg::triangular_solve::{solve_lower_triangular_in_place, solve_upper_triangular_in_place};
+use faer::{Mat, Par};
+
+/// A fitted exact GP over points in R³ (the range sphere), targets already de-meaned.
+#[derive(Debug, Clone)]
+pub struct ExactGp {
+    kernel: Matern32,
+    inputs: Vec<[f64; 3]>,
+    factor: Mat<f64>,
+    alpha: Vec<f64>,
+    jitter: f64,
+    log_marginal_likelihood: f64,
+}
+
+impl ExactGp {
+    /// Fits the GP to `targets` (residuals from the prior mean) at `inputs`, with per-point noise
+    /// variances `noise_var` (the heteroscedastic diagonal Σ).
+    ///
+    /// Panics if the three slices differ in length or are empty (caller's misuse).
+    pub fn fit(
+        kernel: Matern32,
+        inputs: Vec<[f64; 3]>,
+        targets: &[f64],
+        noise_var: &[f64],
+        jitter: JitterPolicy,
+    ) -> Result<Self, CholeskyError> {
+        let n = inputs.len();
+        assert!(n > 0, "a GP needs at least one training point");
+        assert_eq!(targets.len(), n, "one target per input");
+        assert_eq!(noise_var.len(), n, "one noise variance per input");
+        let k = Mat::from_fn(n, n, |i, j| {
+            let c = kernel.between(&inputs[i], &inputs[j]);
+            if i == j {
+                c + noise_var[i]
+            } else {
+                c
+            }
+        });
+        let (llt, jitter_used) = factor_with_jitter(&k, jitter)?;
+        let factor = llt.L().to_owned();
+        let mut rhs = Mat::from_fn(n, 1, |i, _| targets[i]);
+        solve_lower_triangular_in_place(factor.as_ref(), rhs.as_mut(), Par::Seq);
+        let quad: f64 = (0..n).map(|i| rhs[(i, 0)] * rhs[(i, 0)]).sum();
+        let log_det_half: f64 = (0..n).map(|i| factor[(i, i)].ln()).sum();
+        solve_upper_triangular_in_place(factor.transpose(), rhs.as_mut(), Par::Seq);
+        let alpha = (0..n).map(|i| rhs[(i, 0)]).collect();
+        let log_marginal_likelihood = -0.5 * quad
+            - log_det_half
+            - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
+        Ok(Self {
+            kernel,
+            inputs,
+            factor,
+            alpha,
+            jitter: jitter_used,
+            log_marginal_likelihood,
+        })
+    }
+
+    /// Training points.
+    pub fn len(&self) -> usize {
+        self.inputs.len()
+    }
+
+    /// Always false: a fitted GP has at least one training point.
+    pub fn is_empty(&self) -> bool {
+        self.inputs.is_empty()
+    }
+
+    /// The kernel in use.
+    pub fn kernel(&self) -> &Matern32 {
+        &self.kernel
+    }
+
+    /// Diagonal jitter the factorisation needed (0 when none).
+    pub fn jitter(&self) -> f64 {
+        self.jitter
+    }
+
+    /// log p(y | X, θ) of the training data.
+    pub fn log_marginal_likelihood(&self) -> f64 {
+        self.log_marginal_likelihood
+    }
+
+    /// Posterior mean of the residual at `x`: k*ᵀ α (O(n)).
+    pub fn mean(&self, x: &[f64; 3]) -> f64 {
+        self.inputs
+            .iter()
+            .zip(&self.alpha)
+            .map(|(xi, a)| self.kernel.between(x, xi) * a)
+            .sum()
+    }
+
+    /// Posterior mean and latent variance k(0) − ‖L⁻¹ k*‖² at `x` (O(n²)); never negative.
+    pub fn mean_variance(&self, x: &[f64; 3]) -> (f64, f64) {
+        let n = self.inputs.len();
+        let mut kstar = Mat::from_fn(n, 1, |i, _| self.kernel.between(x, &self.inputs[i]));
+        let mean = (0..n).map(|i| kstar[(i, 0)] * self.alpha[i]).sum();
+        solve_lower_triangular_in_place(self.factor.as_ref(), kstar.as_mut(), Par::Seq);
+        let explained: f64 = (0..n).map(|i| kstar[(i, 0)] * kstar[(i, 0)]).sum();
+        (mean, (self.kernel.at(0.0) - explained).max(0.0))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_point_gp_matches_the_closed_form() {
+        let k = Matern32::new(1.5, 0.8);
+        let x0 = [0.0, 0.0, 1.0];
+        let noise = 0.01;
+        let gp = ExactGp::fit(k, vec![x0], &[0.7], &[noise], JitterPolicy::default())
+            .expect("fit");
+        let x = [0.3, 0.0, 1.0];
+        let kx = k.at(0.3);
+        let (m, v) = gp.mean_variance(&x);
+        assert!((m - kx / (1.5 + noise) * 0.7).abs() < 1e-14);
+        assert!((v - (1.5 - kx * kx / (1.5 + noise))).abs() < 1e-14);
+        let lml = -0.5 * 0.49 / 1.51 - 0.5 * 1.51f64.ln() - 0.5 * (2.0 * std::f64::consts::PI).ln();
+        assert!((gp.log_marginal_likelihood() - lml).abs() < 1e-14);
+    }
+
+    /// Fixture made by `service/tests/fixtures/make_gp_fixture.py`, an independent pure-Python
+    /// implementation (its own Cholesky), so a wrong kernel or a wrong solve fails here.
+    #[test]
+    fn matches_the_independent_reference_fixture() {
+        #[derive(serde::Deserialize)]
+        struct Fixture {
+            variance: f64,
+            length_scale: f64,
+            train_x: Vec<[f64; 3]>,
+            train_y: Vec<f64>,
+            noise_var: Vec<f64>,
+            test_x: Vec<[f64; 3]>,
+            mean: Vec<f64>,
+            var: Vec<f64>,
+            lml: f64,
+        }
+        let f: Fixture =
+            serde_json::from_str(include_str!("../../tests/fixtures/gp_matern32.json"))
+                .expect("fixture parses");
+        let gp = ExactGp::fit(
+            Matern32::new(f.variance, f.length_scale),
+            f.train_x.clone(),
+            &f.train_y,
+            &f.noise_var,
+            JitterPolicy::default(),
+        )
+        .expect("fit");
+        assert_eq!(gp.jitter(), 0.0);
+        let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(1e-12);
+        assert!(rel(gp.log_marginal_likelihood(), f.lml) < 1e-9);
+        for (i, x) in f.test_x.iter().enumerate() {
+            let (m, v) = gp.mean_variance(x);
+            assert!(rel(m, f.mean[i]) < 1e-9, "mean {i}: {m} vs {}", f.mean[i]);
+            assert!(rel(v, f.var[i]) < 1e-7, "var {i}: {v} vs {}", f.var[i]);
+            assert!((gp.mean(x) - m).abs() < 1e-12);
+        }
+    }
+}

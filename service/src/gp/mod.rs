@@ -1,0 +1,13 @@
+//! Gaussian-process machinery: kernels, the range sphere, Cholesky with jitter, exact GPs.
+//!
+//! Equations follow `../shared/design/MATH.md` (seed 000 §III-A, Rasmussen & Williams ch. 2).
+//! Numerical failure is a `Result`; misuse (mismatched lengths) is a panic at the caller.
+
+pub mod cholesky;
+pub mod exact;
+pub mod kernel;
+pub mod sphere;
+
+pub use cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
+pub use exact::ExactGp;
+pub use kernel::Matern32;

@@ -1,0 +1,460 @@
+//! The local range map of one scan: range as a GP over (inclination, azimuth) (seed 000 §III-A).
+
+use super::fov::FieldOfView;
+use super::prior::Prior;
+use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Matern32};
+use nalgebra::{Isometry3, Vector3};
+use thiserror::Error;
+
+/// One returned ray of a validated scan, in the sensor frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RayObservation {
+    /// Polar angle from the sensor's +z axis, radians.
+    pub inclination: f64,
+    /// Azimuth, radians.
+    pub azimuth: f64,
+    /// Measured range, metres.
+    pub range: f64,
+}
+
+/// A validated scan in private memory: what the ingest hands to fitting.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanInput {
+    /// Publisher that sent it.
+    pub publisher_id: u64,
+    /// Its per-publisher sequence number.
+    pub sequence: u64,
+    /// Acquisition time, ns since the Unix epoch.
+    pub stamp_ns: u64,
+    /// Sensor frame in the map frame.
+    pub pose: Isometry3<f64>,
+    /// Sensor maximum range, metres.
+    pub max_range_m: f64,
+    /// Range noise σ per metre of range.
+    pub range_noise_per_m: f64,
+    /// Returned rays.
+    pub rays: Vec<RayObservation>,
+}
+
+/// Which prior mean to build a map with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PriorKind {
+    /// Flat ground this far below the sensor, metres.
+    FlatGround {
+        /// Sensor height above ground, metres.
+        sensor_height_m: f64,
+    },
+    /// Constant range, metres.
+    ConstantRange {
+        /// The constant, metres.
+        range_m: f64,
+    },
+}
+
+/// Everything needed to fit a local map besides the scan.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapParams {
+    /// Kernel on the range sphere.
+    pub kernel: Matern32,
+    /// Radius of the range sphere the kernel distances are measured on, metres.
+    pub sphere_radius_m: f64,
+    /// Noise variance added to every training ray on top of the sensor model, m².
+    pub nugget_m2: f64,
+    /// At most this many rays train the GP (an even stride over the scan).
+    pub max_training_rays: usize,
+    /// Prior mean.
+    pub prior: PriorKind,
+    /// Cholesky jitter policy.
+    pub jitter: JitterPolicy,
+}
+
+/// Why a scan could not be turned into a map.
+#[derive(Debug, Error, PartialEq)]
+pub enum FitError {
+    /// The scan has no returned ray.
+    #[error("scan has no returned rays")]
+    NoReturns,
+    /// The covariance matrix could not be factored.
+    #[error(transparent)]
+    Cholesky(#[from] CholeskyError),
+}
+
+/// A predicted surface height with its variance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeightEstimate {
+    /// Height, metres.
+    pub z: f64,
+    /// Variance, m² (delta method through the range variance).
+    pub var: f64,
+}
+
+/// A predicted hit along a ray.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RayEstimate {
+    /// Expected distance to the surface, metres (`None`: no crossing before the max range).
+    pub range: Option<f64>,
+    /// Variance of `range`, m².
+    pub range_var: Option<f64>,
+    /// Probability that the surface is met before the max range.
+    pub hit_probability: f64,
+}
+
+/// One scan's range GP, placed in the map frame by the scan's pose.
+#[derive(Debug, Clone)]
+pub struct LocalRangeMap {
+    /// Publisher of the scan.
+    pub publisher_id: u64,
+    /// Sequence number of the scan.
+    pub sequence: u64,
+    /// Acquisition time, ns.
+    pub stamp_ns: u64,
+    pose: Isometry3<f64>,
+    prior: Prior,
+    sphere_radius: f64,
+    max_range: f64,
+    fov: FieldOfView,
+    gp: ExactGp,
+}
+
+/// Residuals of this size (metres) and below count as "on the surface".
+const ROOT_TOLERANCE_M: f64 = 1e-5;
+
+impl LocalRangeMap {
+    /// Fits the range GP of `scan` (seed 000 eqs. 9–10 with a heteroscedastic diagonal).
+    pub fn fit(scan: &ScanInput, params: &MapParams) -> Result<Self, FitError> {
+        if scan.rays.is_empty() {
+            return Err(FitError::NoReturns);
+        }
+        let prior = match params.prior {
+            PriorKind::FlatGround { sensor_height_m } => {
+                Prior::flat_ground(sensor_height_m, &scan.pose.rotation, scan.max_range_m)
+            }
+            PriorKind::ConstantRange { range_m } => Prior::ConstantRange { range_m },
+        };
+        let stride = scan.rays.len().div_ceil(params.max_training_rays.max(1));
+        let train: Vec<&RayObservation> = scan.rays.iter().step_by(stride).collect();
+        let inputs = train
+            .iter()
+            .map(|r| sphere::to_sphere(r.inclination, r.azimuth, params.sphere_radius_m))
+            .collect();
+        let targets: Vec<f64> = train
+            .iter()
+            .map(|r| r.range - prior.range(&unit(r.inclination, r.azimuth)))
+            .collect();
+        let noise: Vec<f64> = train
+            .iter()
+            .map(|r| (scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2)
+            .collect();
+        let gp = ExactGp::fit(params.kernel, inputs, &targets, &noise, params.jitter)?;
+        let angles: Vec<(f64, f64)> = scan
+            .rays
+            .iter()
+            .map(|r| (r.inclination, r.azimuth))
+            .collect();
+        Ok(Self {
+            publisher_id: scan.publisher_id,
+            sequence: scan.sequence,
+            stamp_ns: scan.stamp_ns,
+            pose: scan.pose,
+            prior,
+            sphere_radius: params.sphere_radius_m,
+            max_range: scan.max_range_m,
+            fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
+            gp,
+        })
+    }
+
+    /// Sensor position in the map frame.
+    pub fn sensor_position(&self) -> Vector3<f64> {
+        self.pose.translation.vector
+    }
+
+    /// Sensor maximum range, metres.
+    pub fn max_range(&self) -> f64 {
+        self.max_range
+    }
+
+    /// Training rays in the GP.
+    pub fn training_rays(&self) -> usize {
+        self.gp.len()
+    }
+
+    /// Predicted range mean and latent variance along the sensor-frame direction (θ, φ).
+    pub fn predict_range(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
+        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        let (resid, var) = self.gp.mean_variance(&x);
+        (self.prior.range(&unit(inclination, azimuth)) + resid, var)
+    }
+
+    /// Mean range only (O(n)).
+    fn mean_range(&self, inclination: f64, azimuth: f64) -> f64 {
+        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        self.prior.range(&unit(inclination, azimuth)) + self.gp.mean(&x)
+    }
+
+    /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
+    fn look_at(&self, p: &Vector3<f64>) -> Option<(f64, f64, f64)> {
+        let q = self.pose.rotation.inverse_transform_vector(&(p - self.sensor_position()));
+        let dist = q.norm();
+        if dist <= 1e-9 || dist > self.max_range {
+            return None;
+        }
+        let (inc, az) = sphere::angles_of([q.x, q.y, q.z]);
+        self.fov.contains(inc, az).then_some((inc, az, dist))
+    }
+
+    /// Signed gap `‖p − s‖ − μ(angles of p)`: negative in free space, positive behind the surface.
+    fn gap(&self, p: &Vector3<f64>) -> Option<f64> {
+        self.look_at(p)
+            .map(|(inc, az, dist)| dist - self.mean_range(inc, az))
+    }
+
+    /// First surface crossing along `point(t)` for t in [t0, t1], sampled at `samples` points
+    /// inside the field of view and refined by the Illinois method.
+    fn first_crossing(
+        &self,
+        point: impl Fn(f64) -> Vector3<f64>,
+        t0: f64,
+        t1: f64,
+        samples: usize,
+    ) -> Option<f64> {
+        let mut prev: Option<(f64, f64)> = None;
+        for k in 0..=samples {
+            let t = t0 + (t1 - t0) * k as f64 / samples as f64;
+            let Some(g) = self.gap(&point(t)) else {
+                prev = None;
+                continue;
+            };
+            if g >= 0.0 {
+                return match prev {
+                    Some((tp, gp)) => self.refine(&point, (tp, gp), (t, g)),
+                    None => None,
+                };
+            }
+            prev = Some((t, g));
+        }
+        None
+    }
+
+    fn refine(
+        &self,
+        point: &impl Fn(f64) -> Vector3<f64>,
+        (mut ta, mut ga): (f64, f64),
+        (mut tb, mut gb): (f64, f64),
+    ) -> Option<f64> {
+        let mut side = 0i8;
+        for _ in 0..60 {
+            let t = (ta * gb - tb * ga) / (gb - ga);
+            let g = self.gap(&point(t))?;
+            if g.abs() < ROOT_TOLERANCE_M * 1e-2 || (tb - ta).abs() < ROOT_TOLERANCE_M {
+                return Some(t);
+            }
+            if g < 0.0 {
+                ta = t;
+                ga = g;
+                if side == -1 {
+                    gb *= 0.5;
+                }
+                side = -1;
+            } else {
+                tb = t;
+                gb = g;
+                if side == 1 {
+                    ga *= 0.5;
+                }
+                side = 1;
+            }
+        }
+        Some(0.5 * (ta + tb))
+    }
+
+    /// Variance of a root of `gap(point(t))` by the delta method: s_r² / (∂gap/∂t)².
+    fn root_variance(&self, point: &impl Fn(f64) -> Vector3<f64>, t: f64) -> Option<f64> {
+        let p = point(t);
+        let (inc, az, _) = self.look_at(&p)?;
+        let (_, var_r) = self.predict_range(inc, az);
+        let h = 1e-4;
+        let slope = (self.gap(&point(t + h))? - self.gap(&point(t - h))?) / (2.0 * h);
+        (slope.abs() > 1e-6).then(|| var_r / (slope * slope))
+    }
+
+    /// Surface height at map (x, y): the first crossing of the vertical line from above
+    /// (MATH.md "From range to 3-D"), or `None` outside what this scan saw.
+    pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+        let s = self.sensor_position();
+        let rho = (x - s.x).hypot(y - s.y);
+        if rho >= self.max_range {
+            return None;
+        }
+        let half = (self.max_range * self.max_range - rho * rho).sqrt();
+        let point = |z: f64| Vector3::new(x, y, z);
+        // Narrow to the part of the vertical line inside the field of view (angles only: cheap).
+        let coarse = 96;
+        let (mut top, mut bottom) = (None, None);
+        for k in 0..=coarse {
+            let z = s.z + half - 2.0 * half * k as f64 / coarse as f64;
+            if self.look_at(&point(z)).is_some() {
+                top.get_or_insert(z);
+                bottom = Some(z);
+            }
+        }
+        let step = 2.0 * half / coarse as f64;
+        let (top, bottom) = (top? + step, bottom? - step);
+        let down = |t: f64| point(top - t);
+        let t = self.first_crossing(down, 0.0, top - bottom, 24)?;
+        let var = self.root_variance(&down, t)?;
+        Some(HeightEstimate { z: top - t, var })
+    }
+
+    /// Casts a map-frame ray (unit `dir`) through this map's surface up to `max_range`.
+    /// `None` when no point of the ray lies in this scan's field of view.
+    pub fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<RayEstimate> {
+        let point = |t: f64| origin + dir * t;
+        let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
+        if let Some(t) = self.first_crossing(point, 0.0, max_range, samples) {
+            let var = self.root_variance(&point, t)?;
+            let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
+            return Some(RayEstimate {
+                range: Some(t),
+                range_var: Some(var),
+                hit_probability,
+            });
+        }
+        // No crossing: the hit probability is set by the closest approach to the surface.
+        let mut closest: Option<(f64, f64, f64)> = None;
+        for k in 0..=samples {
+            let p = point(max_range * k as f64 / samples as f64);
+            if let Some((inc, az, dist)) = self.look_at(&p) {
+                let g = dist - self.mean_range(inc, az);
+                if closest.is_none_or(|c| g > c.0) {
+                    closest = Some((g, inc, az));
+                }
+            }
+        }
+        let (g, inc, az) = closest?;
+        let (_, var_r) = self.predict_range(inc, az);
+        Some(RayEstimate {
+            range: None,
+            range_var: None,
+            hit_probability: normal_cdf(g / var_r.sqrt().max(1e-12)),
+        })
+    }
+}
+
+/// Sensor-frame unit direction of (θ, φ).
+fn unit(inclination: f64, azimuth: f64) -> Vector3<f64> {
+    let [x, y, z] = sphere::to_sphere(inclination, azimuth, 1.0);
+    Vector3::new(x, y, z)
+}
+
+/// Standard normal CDF (Abramowitz–Stegun 7.1.26 erf, |error| < 1.5e-7).
+pub fn normal_cdf(x: f64) -> f64 {
+    let z = x.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * z);
+    let poly = t
+        * (0.254_829_592
+            + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let erf = 1.0 - poly * (-z * z).exp();
+    if x >= 0.0 {
+        0.5 * (1.0 + erf)
+    } else {
+        0.5 * (1.0 - erf)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+    use rand::SeedableRng;
+    use rangegp_sim::{simulate_scan, CraterParams, Heightmap, ScannerPreset};
+
+    pub(crate) fn params() -> MapParams {
+        MapParams {
+            kernel: Matern32::new(2.30, 1.21),
+            sphere_radius_m: 10.0,
+            nugget_m2: 1e-6,
+            max_training_rays: 2000,
+            prior: PriorKind::FlatGround {
+                sensor_height_m: 0.75,
+            },
+            jitter: JitterPolicy::default(),
+        }
+    }
+
+    fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
+        let preset = ScannerPreset::seed000();
+        let rays = simulate_scan(terrain, &pose, &preset, &mut rand_pcg::Pcg64::seed_from_u64(5));
+        ScanInput {
+            publisher_id: 1,
+            sequence: 1,
+            stamp_ns: 0,
+            pose,
+            max_range_m: preset.max_range_m,
+            range_noise_per_m: preset.range_noise_per_m,
+            rays: rays
+                .iter()
+                .filter_map(|r| {
+                    r.measured_range_m.map(|range| RayObservation {
+                        inclination: r.inclination_rad,
+                        azimuth: r.azimuth_rad,
+                        range,
+                    })
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn flat_ground_is_recovered_exactly_and_unseen_places_are_refused() {
+        let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, 0.75),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5),
+        );
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        for (x, y) in [(3.0, 2.0), (5.0, 4.0), (1.5, 2.5)] {
+            let e = map.elevation(x, y).expect("observed");
+            assert!(e.z.abs() < 2e-3, "z at ({x},{y}) = {}", e.z);
+            assert!(e.var > 0.0 && e.var.sqrt() < 0.05);
+        }
+        // Behind the sensor (the seed-000 scanner looks ±90° around its heading) and beyond 10 m.
+        assert!(map.elevation(-3.0, -2.0).is_none());
+        assert!(map.elevation(12.0, 8.0).is_none());
+    }
+
+    #[test]
+    fn ray_cast_meets_the_cratered_ground_from_an_unvisited_origin() {
+        let terrain = Heightmap::cratered(
+            11,
+            &CraterParams {
+                size_m: 40.0,
+                ..CraterParams::default()
+            },
+        );
+        let ground = terrain.height(0.0, 0.0).expect("inside");
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, ground + 0.75),
+            UnitQuaternion::identity(),
+        );
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let origin = Vector3::new(1.0, 0.5, ground + 1.2);
+        let dir = Vector3::new(1.0, 0.1, -0.35).normalize();
+        let truth = terrain.cast(origin, dir, 10.0).expect("ground hit");
+        let est = map.cast(origin, dir, 10.0).expect("in view");
+        let range = est.range.expect("hit");
+        let sd = est.range_var.expect("variance").sqrt();
+        assert!((range - truth).abs() < 0.1, "{range} vs {truth}");
+        assert!((range - truth).abs() < 4.0 * sd + 0.01);
+        assert!(est.hit_probability > 0.99);
+        let up = map.cast(origin, Vector3::new(1.0, 0.0, 0.05).normalize(), 3.0);
+        assert!(up.is_none_or(|e| e.range.is_none() && e.hit_probability < 0.5));
+    }
+
+    #[test]
+    fn normal_cdf_known_values() {
+        assert!((normal_cdf(0.0) - 0.5).abs() < 1e-9);
+        assert!((normal_cdf(1.959_964) - 0.975).abs() < 1e-6);
+        assert!((normal_cdf(-1.0) - 0.158_655_25).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,11 @@
+//! Maps built from scans: the per-scan local range map, its prior, the rolling window, queries.
+
+pub mod fov;
+pub mod local;
+pub mod prior;
+pub mod query;
+pub mod window;
+
+pub use local::{FitError, LocalRangeMap, ScanInput};
+pub use prior::Prior;
+pub use window::{MapSnapshot, Window};

@@ -1,0 +1,121 @@
+//! Query evaluation over a [`MapSnapshot`]: elevation, variance and rays, in batches.
+
+use super::window::MapSnapshot;
+use super::LocalRangeMap;
+use nalgebra::Vector3;
+use rangegp_proto::msg::{ElevationItem, Ray, RayItem, Source, VarianceItem};
+use std::sync::Arc;
+
+/// How many of the nearest window maps are asked per query point (the least uncertain wins).
+const CANDIDATES: usize = 3;
+
+/// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`].
+fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
+    let mut near: Vec<(f64, &Arc<LocalRangeMap>)> = snapshot
+        .maps
+        .iter()
+        .filter_map(|m| {
+            let s = m.sensor_position();
+            let rho = (x - s.x).hypot(y - s.y);
+            (rho < m.max_range()).then_some((rho, m))
+        })
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    near.into_iter().take(CANDIDATES).map(|(_, m)| m).collect()
+}
+
+/// Elevation at (x, y): the least uncertain answer among the nearest window maps that saw it.
+pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
+    let best = nearest(snapshot, x, y)
+        .into_iter()
+        .filter_map(|m| m.elevation(x, y))
+        .min_by(|a, b| a.var.total_cmp(&b.var));
+    match best {
+        Some(e) => ElevationItem {
+            z_m: Some(e.z),
+            z_var_m2: Some(e.var),
+            source: Source::Window,
+            observed: true,
+        },
+        None => ElevationItem {
+            z_m: None,
+            z_var_m2: None,
+            source: Source::None,
+            observed: false,
+        },
+    }
+}
+
+/// Elevation variance at (x, y) (same search as [`elevation`]).
+pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
+    let e = elevation(snapshot, x, y);
+    VarianceItem {
+        z_var_m2: e.z_var_m2,
+        source: e.source,
+    }
+}
+
+/// Casts one ray (already validated: finite, non-zero direction, positive range).
+pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
+    let origin = Vector3::from(ray.origin_m);
+    let dir = Vector3::from(ray.direction).normalize();
+    let mut near: Vec<(f64, &Arc<LocalRangeMap>)> = snapshot
+        .maps
+        .iter()
+        .map(|m| ((m.sensor_position() - origin).norm(), m))
+        .filter(|(d, m)| *d < m.max_range() + ray.max_range_m)
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let answers: Vec<_> = near
+        .into_iter()
+        .take(CANDIDATES)
+        .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m))
+        .collect();
+    let hit = answers
+        .iter()
+        .filter(|a| a.range.is_some())
+        .min_by(|a, b| a.range_var.unwrap_or(f64::INFINITY).total_cmp(&b.range_var.unwrap_or(f64::INFINITY)));
+    let best = hit.or_else(|| {
+        answers
+            .iter()
+            .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability))
+    });
+    match best {
+        Some(a) => RayItem {
+            range_m: a.range,
+            range_var_m2: a.range_var,
+            hit_probability: a.hit_probability,
+            hit_point_m: a.range.map(|t| (origin + dir * t).into()),
+            source: Source::Window,
+        },
+        None => RayItem {
+            range_m: None,
+            range_var_m2: None,
+            hit_probability: 0.0,
+            hit_point_m: None,
+            source: Source::None,
+        },
+    }
+}
+
+/// Maps `f` over `items` on up to `threads` scoped threads, keeping order.
+pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = threads.max(1).min(items.len().div_ceil(16).max(1));
+    if threads == 1 {
+        return items.iter().map(&f).collect();
+    }
+    let chunk = items.len().div_ceil(threads);
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = items
+            .chunks(chunk)
+            .map(|c| scope.spawn(|| c.iter().map(&f).collect::<Vec<R>>()))
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| match h.join() {
+                Ok(v) => v,
+                Err(panic) => std::panic::resume_unwind(panic),
+            })
+            .collect()
+    })
+}
