@@ -1,1 +1,13 @@
-//! placeholder
+//! rangegp-client: talk to the rangegp daemon.
+//!
+//! - [`Client`]: typed, timed queries over Zenoh (blocking and async).
+//! - [`ScanPublisher`]: zero-copy scan publishing over iceoryx2.
+//! - [`transport`]: Zenoh configuration shared with the daemon.
+
+pub mod client;
+pub mod publisher;
+pub mod scangen;
+pub mod transport;
+
+pub use client::{Client, ClientBuilder, ClientError};
+pub use publisher::{PublishError, ScanPublisher};

@@ -105,6 +105,33 @@ impl ScanPoint {
     }
 }
 
+/// Error opening or creating the iceoryx2 scan service.
+pub type ScanServiceError = iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
+
+/// The iceoryx2 port factory of a scan service (header + point slice).
+pub type ScanService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+    iceoryx2::prelude::ipc::Service,
+    [ScanPoint],
+    ScanHeader,
+>;
+
+/// Opens (or creates) the scan service `name` with the contract's quality of service, so every
+/// publisher and the daemon agree on it whoever comes first.
+pub fn open_scan_service(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    name: &iceoryx2::prelude::ServiceName,
+) -> Result<ScanService, ScanServiceError> {
+    node.service_builder(name)
+        .publish_subscribe::<[ScanPoint]>()
+        .user_header::<ScanHeader>()
+        .max_publishers(SCAN_SERVICE_MAX_PUBLISHERS)
+        .max_subscribers(SCAN_SERVICE_MAX_SUBSCRIBERS)
+        .subscriber_max_buffer_size(SCAN_SERVICE_SUBSCRIBER_BUFFER)
+        .max_nodes(SCAN_SERVICE_MAX_NODES)
+        .history_size(0)
+        .open_or_create()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,3 +175,12 @@ mod tests {
         }
     }
 }
+
+/// Publishers the scan service admits (iceoryx2's default of 2 silently limits a robot stack).
+pub const SCAN_SERVICE_MAX_PUBLISHERS: usize = 16;
+/// Subscribers the scan service admits (the daemon plus tools such as recorders).
+pub const SCAN_SERVICE_MAX_SUBSCRIBERS: usize = 4;
+/// Samples a subscriber may hold queued before the oldest is overwritten.
+pub const SCAN_SERVICE_SUBSCRIBER_BUFFER: usize = 8;
+/// Nodes the scan service admits.
+pub const SCAN_SERVICE_MAX_NODES: usize = 32;

@@ -3,8 +3,17 @@
 //! - [`gp`]: kernels, range sphere, Cholesky with jitter, exact GP regression.
 //! - [`map`]: local range maps, the window, query evaluation.
 //! - [`ingest`]: the iceoryx2 subscriber thread and scan validation.
-//! - [`server`]: Zenoh queryables.
-//! - [`daemon`]: wiring of the above with configuration and shutdown.
+//! - [`server`]: Zenoh queryables and the query worker pool.
+//! - [`daemon`]: wiring of the above.
+//! - [`config`], [`metrics`]: TOML configuration, counters.
+//! - [`demo`], [`plot`]: the self-contained demo and its pictures.
 
+pub mod config;
+pub mod daemon;
+pub mod demo;
 pub mod gp;
+pub mod ingest;
 pub mod map;
+pub mod metrics;
+pub mod plot;
+pub mod server;

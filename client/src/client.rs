@@ -1,0 +1,249 @@
+//! Typed Zenoh client: one method per query, each bounded by a timeout.
+
+use crate::transport::{zenoh_config, TransportConfigError};
+use rangegp_proto::codec::{self, CodecError, Encoding};
+use rangegp_proto::keys::{InvalidMapId, MapKeys, QueryKind};
+use rangegp_proto::msg::*;
+use rangegp_proto::PROTOCOL_VERSION;
+use serde::{de::DeserializeOwned, Serialize};
+use std::time::{Duration, Instant};
+use thiserror::Error;
+use zenoh::query::QueryTarget;
+use zenoh::Wait;
+
+/// A query failed.
+#[derive(Debug, Error)]
+pub enum ClientError {
+    /// The map id cannot be used in a key expression.
+    #[error(transparent)]
+    MapId(#[from] InvalidMapId),
+    /// The Zenoh configuration is invalid.
+    #[error(transparent)]
+    Config(#[from] TransportConfigError),
+    /// Zenoh could not open a session or send the query.
+    #[error("zenoh: {0}")]
+    Transport(String),
+    /// No daemon answered within the timeout (none running, or not reachable yet).
+    #[error("no reply from the daemon within {0:?}")]
+    Timeout(Duration),
+    /// The daemon answered with an error.
+    #[error("daemon refused the query ({code:?}): {message}")]
+    Server {
+        /// Error class.
+        code: ErrorCode,
+        /// Detail.
+        message: String,
+    },
+    /// The reply could not be decoded.
+    #[error("undecodable reply: {0}")]
+    Codec(#[from] CodecError),
+    /// The reply has the wrong number of items.
+    #[error("reply has {got} items for {sent} requested")]
+    BatchMismatch {
+        /// Items requested.
+        sent: usize,
+        /// Items received.
+        got: usize,
+    },
+}
+
+/// Builder of a [`Client`].
+#[derive(Debug, Clone)]
+pub struct ClientBuilder {
+    map_id: String,
+    connect: Vec<String>,
+    mode: String,
+    timeout: Duration,
+    encoding: Encoding,
+}
+
+impl ClientBuilder {
+    /// Endpoints to connect to (for example `tcp/127.0.0.1:7447`).
+    pub fn connect(mut self, endpoints: impl IntoIterator<Item = impl Into<String>>) -> Self {
+        self.connect = endpoints.into_iter().map(Into::into).collect();
+        self
+    }
+
+    /// Per-query timeout (default 10 s).
+    pub fn timeout(mut self, timeout: Duration) -> Self {
+        self.timeout = timeout;
+        self
+    }
+
+    /// Payload encoding (default bincode).
+    pub fn encoding(mut self, encoding: Encoding) -> Self {
+        self.encoding = encoding;
+        self
+    }
+
+    /// Zenoh mode of the client session (default `peer`).
+    pub fn mode(mut self, mode: impl Into<String>) -> Self {
+        self.mode = mode.into();
+        self
+    }
+
+    /// Opens the Zenoh session (blocking).
+    pub fn open(self) -> Result<Client, ClientError> {
+        let keys = MapKeys::new(&self.map_id)?;
+        let config = zenoh_config(&self.mode, &[], &self.connect, false)?;
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        Ok(Client {
+            session,
+            keys,
+            timeout: self.timeout,
+            encoding: self.encoding,
+        })
+    }
+}
+
+/// A connection to one map of a rangegp daemon.
+#[derive(Debug, Clone)]
+pub struct Client {
+    session: zenoh::Session,
+    keys: MapKeys,
+    timeout: Duration,
+    encoding: Encoding,
+}
+
+impl Client {
+    /// Starts building a client for `map_id`.
+    pub fn builder(map_id: impl Into<String>) -> ClientBuilder {
+        ClientBuilder {
+            map_id: map_id.into(),
+            connect: Vec::new(),
+            mode: "peer".into(),
+            timeout: Duration::from_secs(10),
+            encoding: Encoding::Bincode,
+        }
+    }
+
+    /// Waits until the daemon's liveliness token is visible (its queryables are routed).
+    pub fn wait_for_daemon(&self, timeout: Duration) -> Result<(), ClientError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let replies = self
+                .session
+                .liveliness()
+                .get(self.keys.alive())
+                .timeout(left.min(Duration::from_millis(500)))
+                .wait()
+                .map_err(|e| ClientError::Transport(e.to_string()))?;
+            if replies.recv().is_ok() {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                return Err(ClientError::Timeout(timeout));
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Elevation at map (x, y) points.
+    pub fn elevation(&self, points: &[[f64; 2]]) -> Result<Vec<ElevationItem>, ClientError> {
+        let req = ElevationRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
+        let rep: ElevationReply = self.call(&self.keys.query(QueryKind::Elevation), &req)?;
+        check_len(points.len(), rep.items)
+    }
+
+    /// Elevation variance at map (x, y) points.
+    pub fn variance(&self, points: &[[f64; 2]]) -> Result<Vec<VarianceItem>, ClientError> {
+        let req = VarianceRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
+        let rep: VarianceReply = self.call(&self.keys.query(QueryKind::Variance), &req)?;
+        check_len(points.len(), rep.items)
+    }
+
+    /// Casts rays through the map.
+    pub fn ray(&self, rays: &[Ray]) -> Result<Vec<RayItem>, ClientError> {
+        let req = RayRequest { version: PROTOCOL_VERSION, rays: rays.to_vec() };
+        let rep: RayReply = self.call(&self.keys.query(QueryKind::Ray), &req)?;
+        check_len(rays.len(), rep.items)
+    }
+
+    /// The daemon's counters.
+    pub fn status(&self) -> Result<StatusReply, ClientError> {
+        self.call(&self.keys.status(), &StatusRequest { version: PROTOCOL_VERSION })
+    }
+
+    /// Async form of [`Client::elevation`].
+    pub async fn elevation_async(&self, points: &[[f64; 2]]) -> Result<Vec<ElevationItem>, ClientError> {
+        let req = ElevationRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
+        let rep: ElevationReply = self.call_async(&self.keys.query(QueryKind::Elevation), &req).await?;
+        check_len(points.len(), rep.items)
+    }
+
+    /// Async form of [`Client::status`].
+    pub async fn status_async(&self) -> Result<StatusReply, ClientError> {
+        self.call_async(&self.keys.status(), &StatusRequest { version: PROTOCOL_VERSION }).await
+    }
+
+    /// Sends raw bytes to `rangegp/<map>/query/<kind>` and returns the raw reply (for tools and
+    /// tests of the daemon's error handling).
+    pub fn call_raw(&self, key: &str, payload: Vec<u8>, encoding: Encoding) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
+        let replies = self
+            .session
+            .get(key)
+            .payload(payload)
+            .encoding(encoding.mime())
+            .target(QueryTarget::AllComplete)
+            .timeout(self.timeout)
+            .wait()
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let reply = replies.recv().map_err(|_| ClientError::Timeout(self.timeout))?;
+        decode_reply(reply, encoding)
+    }
+
+    /// The keys of the map this client talks to.
+    pub fn keys(&self) -> &MapKeys {
+        &self.keys
+    }
+
+    fn call<Q: Serialize, R: DeserializeOwned>(&self, key: &str, req: &Q) -> Result<R, ClientError> {
+        let payload = codec::encode(self.encoding, req)?;
+        match self.call_raw(key, payload, self.encoding)? {
+            Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
+            Err(e) => Err(ClientError::Server { code: e.code, message: e.message }),
+        }
+    }
+
+    async fn call_async<Q: Serialize, R: DeserializeOwned>(&self, key: &str, req: &Q) -> Result<R, ClientError> {
+        let payload = codec::encode(self.encoding, req)?;
+        let replies = self
+            .session
+            .get(key)
+            .payload(payload)
+            .encoding(self.encoding.mime())
+            .target(QueryTarget::AllComplete)
+            .timeout(self.timeout)
+            .await
+            .map_err(|e| ClientError::Transport(e.to_string()))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| ClientError::Timeout(self.timeout))?;
+        match decode_reply(reply, self.encoding)? {
+            Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
+            Err(e) => Err(ClientError::Server { code: e.code, message: e.message }),
+        }
+    }
+}
+
+fn decode_reply(reply: zenoh::query::Reply, encoding: Encoding) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
+    match reply.result() {
+        Ok(sample) => Ok(Ok(sample.payload().to_bytes().into_owned())),
+        Err(err) => {
+            let bytes = err.payload().to_bytes();
+            Ok(Err(codec::decode::<ErrorReply>(encoding, &bytes)?))
+        }
+    }
+}
+
+fn check_len<T>(sent: usize, items: Vec<T>) -> Result<Vec<T>, ClientError> {
+    if items.len() == sent {
+        Ok(items)
+    } else {
+        Err(ClientError::BatchMismatch { sent, got: items.len() })
+    }
+}

@@ -1,0 +1,100 @@
+//! Simulated scans as wire messages: the scan generator behind the demo, tests and load tests.
+
+use nalgebra::Isometry3;
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID};
+use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset, SimRay};
+
+/// Converts simulated rays taken from `pose` into a header (sequence and publisher id left for
+/// the publisher) and the point slice.
+pub fn to_message(preset: &ScannerPreset, pose: &Isometry3<f64>, rays: &[SimRay], stamp_ns: u64) -> (ScanHeader, Vec<ScanPoint>) {
+    let q = pose.rotation.quaternion();
+    let t = pose.translation.vector;
+    let header = ScanHeader {
+        point_count: rays.len() as u32,
+        stamp_ns,
+        px_m: t.x,
+        py_m: t.y,
+        pz_m: t.z,
+        qx: q.i,
+        qy: q.j,
+        qz: q.k,
+        qw: q.w,
+        max_range_m: preset.max_range_m,
+        range_noise_per_m: preset.range_noise_per_m,
+        ..ScanHeader::default()
+    };
+    let points = rays
+        .iter()
+        .map(|r| ScanPoint {
+            range_m: r.measured_range_m.unwrap_or(0.0) as f32,
+            inclination_rad: r.inclination_rad as f32,
+            azimuth_rad: r.azimuth_rad as f32,
+            ring: r.ring,
+            column: r.column,
+            flags: FLAG_RING_COLUMN_VALID | if r.measured_range_m.is_none() { FLAG_NO_RETURN } else { 0 },
+            reserved: 0,
+        })
+        .collect();
+    (header, points)
+}
+
+/// A seeded world (terrain, path, sensor) producing scans along the path.
+#[derive(Debug, Clone)]
+pub struct ScanGenerator {
+    /// Ground truth.
+    pub terrain: Heightmap,
+    /// The rover's path.
+    pub path: Path,
+    /// Sensor model.
+    pub preset: ScannerPreset,
+    rng: Pcg64,
+}
+
+/// One generated scan with its ground truth pose.
+#[derive(Debug, Clone)]
+pub struct GeneratedScan {
+    /// Header (no sequence / publisher id yet).
+    pub header: ScanHeader,
+    /// Points.
+    pub points: Vec<ScanPoint>,
+    /// Sensor pose.
+    pub pose: Isometry3<f64>,
+}
+
+impl ScanGenerator {
+    /// A cratered world of `size_m` metres from `seed`, with a wander path of `scans` poses
+    /// `step_m` apart.
+    pub fn new(seed: u64, size_m: f64, preset: ScannerPreset, scans: usize, step_m: f64) -> Self {
+        let terrain = Heightmap::cratered(seed, &CraterParams { size_m, ..CraterParams::default() });
+        let path = Path::wander(seed ^ 0x5eed, &terrain, scans, step_m, 0.25);
+        Self { terrain, path, preset, rng: Pcg64::seed_from_u64(seed ^ 0x0015e) }
+    }
+
+    /// Scans on the path.
+    pub fn len(&self) -> usize {
+        self.path.waypoints.len()
+    }
+
+    /// True when the path is empty.
+    pub fn is_empty(&self) -> bool {
+        self.path.waypoints.is_empty()
+    }
+
+    /// Simulates the scan at waypoint `i` (noise drawn from the generator's stream).
+    pub fn scan(&mut self, i: usize, stamp_ns: u64) -> GeneratedScan {
+        let pose = self.path.pose(&self.terrain, i, self.preset.mount_height_m);
+        let rays = simulate_scan(&self.terrain, &pose, &self.preset, &mut self.rng);
+        let (header, points) = to_message(&self.preset, &pose, &rays, stamp_ns);
+        GeneratedScan { header, points, pose }
+    }
+}
+
+/// Nanoseconds since the Unix epoch now (0 if the clock is before 1970).
+pub fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}

@@ -1,0 +1,45 @@
+//! Zenoh configuration from plain settings (mode, endpoints, scouting).
+
+use thiserror::Error;
+
+/// A Zenoh configuration could not be built.
+#[derive(Debug, Error)]
+#[error("invalid zenoh setting {key}: {reason}")]
+pub struct TransportConfigError {
+    /// Configuration key.
+    pub key: String,
+    /// Zenoh's reason.
+    pub reason: String,
+}
+
+/// Builds a Zenoh configuration: `mode` (peer / client / router), endpoints to listen on and
+/// connect to, multicast scouting on or off (off keeps traffic on the named endpoints).
+pub fn zenoh_config(
+    mode: &str,
+    listen: &[String],
+    connect: &[String],
+    multicast_scouting: bool,
+) -> Result<zenoh::Config, TransportConfigError> {
+    let mut config = zenoh::Config::default();
+    let set = |config: &mut zenoh::Config, key: &str, value: String| {
+        config
+            .insert_json5(key, &value)
+            .map_err(|e| TransportConfigError {
+                key: key.to_owned(),
+                reason: e.to_string(),
+            })
+    };
+    let list = |v: &[String]| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());
+    set(&mut config, "mode", serde_json::Value::from(mode).to_string())?;
+    set(&mut config, "listen/endpoints", list(listen))?;
+    set(&mut config, "connect/endpoints", list(connect))?;
+    set(&mut config, "scouting/multicast/enabled", multicast_scouting.to_string())?;
+    Ok(config)
+}
+
+/// A loopback TCP endpoint on a port the OS just handed out (`tcp/127.0.0.1:<port>`), for
+/// demos and tests that must not collide with each other or with a running daemon.
+pub fn free_loopback_endpoint() -> std::io::Result<String> {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    Ok(format!("tcp/127.0.0.1:{}", listener.local_addr()?.port()))
+}

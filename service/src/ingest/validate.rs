@@ -1,0 +1,293 @@
+//! Validation of a scan copied out of shared memory. Pure functions over private copies: a scan
+//! either becomes a [`ScanInput`] or is rejected with exactly one [`RejectReason`].
+
+use crate::map::local::{RayObservation, ScanInput};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID};
+use rangegp_proto::PROTOCOL_VERSION;
+use std::collections::HashMap;
+
+/// Why a scan was rejected; each is counted separately and reported by `status`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum RejectReason {
+    /// `protocol_version` is not this daemon's.
+    UnsupportedVersion,
+    /// `point_count` is zero.
+    EmptyScan,
+    /// `point_count` exceeds `ingest.max_points`.
+    TooManyPoints,
+    /// `point_count` exceeds the slice actually sent.
+    Truncated,
+    /// A returned ray has a non-finite or negative range.
+    InvalidRange,
+    /// A ray's angles are non-finite or out of [0, π] × [−π, π].
+    InvalidAngle,
+    /// A point sets unknown flag bits or a non-zero reserved field.
+    InvalidFlags,
+    /// The pose has a non-finite position or quaternion component.
+    InvalidPose,
+    /// The quaternion's norm is not 1 (± 1e-3).
+    NonUnitQuaternion,
+    /// Max range or noise coefficient out of range.
+    InvalidSensorModel,
+    /// Sequence number not after the publisher's last accepted one.
+    StaleSequence,
+    /// Every ray was a no-return: nothing to map.
+    NoReturns,
+    /// The GP could not be fitted (Cholesky failed after jitter).
+    FitFailed,
+}
+
+impl RejectReason {
+    /// Every reason, in status order.
+    pub const ALL: [RejectReason; 13] = [
+        RejectReason::UnsupportedVersion,
+        RejectReason::EmptyScan,
+        RejectReason::TooManyPoints,
+        RejectReason::Truncated,
+        RejectReason::InvalidRange,
+        RejectReason::InvalidAngle,
+        RejectReason::InvalidFlags,
+        RejectReason::InvalidPose,
+        RejectReason::NonUnitQuaternion,
+        RejectReason::InvalidSensorModel,
+        RejectReason::StaleSequence,
+        RejectReason::NoReturns,
+        RejectReason::FitFailed,
+    ];
+
+    /// Stable snake_case name (status replies, logs, docs/PROTOCOL.md).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RejectReason::UnsupportedVersion => "unsupported_version",
+            RejectReason::EmptyScan => "empty_scan",
+            RejectReason::TooManyPoints => "too_many_points",
+            RejectReason::Truncated => "truncated",
+            RejectReason::InvalidRange => "invalid_range",
+            RejectReason::InvalidAngle => "invalid_angle",
+            RejectReason::InvalidFlags => "invalid_flags",
+            RejectReason::InvalidPose => "invalid_pose",
+            RejectReason::NonUnitQuaternion => "non_unit_quaternion",
+            RejectReason::InvalidSensorModel => "invalid_sensor_model",
+            RejectReason::StaleSequence => "stale_sequence",
+            RejectReason::NoReturns => "no_returns",
+            RejectReason::FitFailed => "fit_failed",
+        }
+    }
+}
+
+/// Bounds a scan must respect.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ValidationLimits {
+    /// Most points accepted in one scan.
+    pub max_points: usize,
+}
+
+/// Largest sensor max range accepted, metres.
+const MAX_SENSOR_RANGE_M: f64 = 1000.0;
+/// Largest range-noise coefficient accepted (σ/r).
+const MAX_NOISE_PER_M: f64 = 0.1;
+
+/// Checks the header alone (before any point is copied).
+pub fn check_header(
+    h: &ScanHeader,
+    slice_len: usize,
+    limits: &ValidationLimits,
+) -> Result<(), RejectReason> {
+    if h.protocol_version != PROTOCOL_VERSION {
+        return Err(RejectReason::UnsupportedVersion);
+    }
+    let count = h.point_count as usize;
+    if count == 0 {
+        return Err(RejectReason::EmptyScan);
+    }
+    if count > limits.max_points {
+        return Err(RejectReason::TooManyPoints);
+    }
+    if count > slice_len {
+        return Err(RejectReason::Truncated);
+    }
+    let pose = [h.px_m, h.py_m, h.pz_m, h.qx, h.qy, h.qz, h.qw];
+    if pose.iter().any(|v| !v.is_finite()) {
+        return Err(RejectReason::InvalidPose);
+    }
+    let norm = (h.qx * h.qx + h.qy * h.qy + h.qz * h.qz + h.qw * h.qw).sqrt();
+    if (norm - 1.0).abs() > 1e-3 {
+        return Err(RejectReason::NonUnitQuaternion);
+    }
+    let range_ok = h.max_range_m.is_finite() && h.max_range_m > 0.0 && h.max_range_m <= MAX_SENSOR_RANGE_M;
+    let noise_ok = h.range_noise_per_m.is_finite() && (0.0..=MAX_NOISE_PER_M).contains(&h.range_noise_per_m);
+    if !range_ok || !noise_ok {
+        return Err(RejectReason::InvalidSensorModel);
+    }
+    Ok(())
+}
+
+/// Validates a private copy of the header and its points and builds the fitter's input.
+/// Returns at or beyond the max range count as no-returns.
+pub fn validate(h: &ScanHeader, points: &[ScanPoint], limits: &ValidationLimits) -> Result<ScanInput, RejectReason> {
+    check_header(h, points.len(), limits)?;
+    let points = &points[..h.point_count as usize];
+    let known_flags = FLAG_NO_RETURN | FLAG_RING_COLUMN_VALID;
+    let mut rays = Vec::with_capacity(points.len());
+    for p in points {
+        if p.flags & !known_flags != 0 || p.reserved != 0 {
+            return Err(RejectReason::InvalidFlags);
+        }
+        let (inc, az) = (p.inclination_rad as f64, p.azimuth_rad as f64);
+        let pi = std::f64::consts::PI + 1e-6;
+        if !inc.is_finite() || !az.is_finite() || !(0.0..=pi).contains(&inc) || az.abs() > pi {
+            return Err(RejectReason::InvalidAngle);
+        }
+        if !p.has_return() {
+            continue;
+        }
+        let r = p.range_m as f64;
+        if !r.is_finite() || r < 0.0 {
+            return Err(RejectReason::InvalidRange);
+        }
+        if r > 0.0 && r < h.max_range_m {
+            rays.push(RayObservation {
+                inclination: inc,
+                azimuth: az,
+                range: r,
+            });
+        }
+    }
+    if rays.is_empty() {
+        return Err(RejectReason::NoReturns);
+    }
+    let rotation = UnitQuaternion::new_normalize(Quaternion::new(h.qw, h.qx, h.qy, h.qz));
+    Ok(ScanInput {
+        publisher_id: h.publisher_id,
+        sequence: h.sequence,
+        stamp_ns: h.stamp_ns,
+        pose: Isometry3::from_parts(Translation3::new(h.px_m, h.py_m, h.pz_m), rotation),
+        max_range_m: h.max_range_m,
+        range_noise_per_m: h.range_noise_per_m,
+        rays,
+    })
+}
+
+/// Per-publisher sequence bookkeeping: refuses replays, counts gaps. Bounded in size.
+#[derive(Debug, Default)]
+pub struct SequenceTracker {
+    last: HashMap<u64, u64>,
+}
+
+/// Publishers remembered at most; beyond it the table is cleared (a restart of bookkeeping).
+const MAX_TRACKED_PUBLISHERS: usize = 4096;
+
+impl SequenceTracker {
+    /// Checks `sequence` against `publisher`'s last accepted one without recording it; returns
+    /// the number of sequence numbers skipped since then.
+    pub fn check(&self, publisher: u64, sequence: u64) -> Result<u64, RejectReason> {
+        match self.last.get(&publisher) {
+            Some(&last) if sequence <= last => Err(RejectReason::StaleSequence),
+            Some(&last) => Ok(sequence - last - 1),
+            None => Ok(0),
+        }
+    }
+
+    /// Records an accepted scan.
+    pub fn accept(&mut self, publisher: u64, sequence: u64) {
+        if self.last.len() >= MAX_TRACKED_PUBLISHERS && !self.last.contains_key(&publisher) {
+            self.last.clear();
+        }
+        self.last.insert(publisher, sequence);
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    pub(crate) fn good_header(count: u32) -> ScanHeader {
+        ScanHeader {
+            point_count: count,
+            publisher_id: 7,
+            sequence: 1,
+            pz_m: 0.75,
+            max_range_m: 10.0,
+            range_noise_per_m: 0.0075 / 29.0,
+            ..ScanHeader::default()
+        }
+    }
+
+    pub(crate) fn good_points(count: usize) -> Vec<ScanPoint> {
+        (0..count)
+            .map(|i| ScanPoint {
+                range_m: 3.0,
+                inclination_rad: 1.75,
+                azimuth_rad: -0.5 + i as f32 * 0.01,
+                ..ScanPoint::default()
+            })
+            .collect()
+    }
+
+    fn limits() -> ValidationLimits {
+        ValidationLimits { max_points: 100 }
+    }
+
+    #[test]
+    fn a_good_scan_passes_and_max_range_returns_are_dropped() {
+        let mut pts = good_points(10);
+        pts[3].range_m = 10.0;
+        pts[4].flags = FLAG_NO_RETURN;
+        pts[4].range_m = f32::NAN;
+        let scan = validate(&good_header(10), &pts, &limits()).expect("valid");
+        assert_eq!(scan.rays.len(), 8);
+    }
+
+    #[test]
+    fn each_defect_has_its_own_reason() {
+        let pts = good_points(10);
+        let check = |h: ScanHeader, p: &[ScanPoint], want: RejectReason| {
+            assert_eq!(validate(&h, p, &limits()).err(), Some(want));
+        };
+        check(ScanHeader { protocol_version: 99, ..good_header(10) }, &pts, RejectReason::UnsupportedVersion);
+        check(good_header(0), &pts, RejectReason::EmptyScan);
+        check(good_header(101), &good_points(101), RejectReason::TooManyPoints);
+        check(good_header(11), &pts, RejectReason::Truncated);
+        check(ScanHeader { px_m: f64::NAN, ..good_header(10) }, &pts, RejectReason::InvalidPose);
+        check(ScanHeader { qw: f64::INFINITY, ..good_header(10) }, &pts, RejectReason::InvalidPose);
+        check(ScanHeader { qw: 0.9, ..good_header(10) }, &pts, RejectReason::NonUnitQuaternion);
+        check(ScanHeader { max_range_m: 0.0, ..good_header(10) }, &pts, RejectReason::InvalidSensorModel);
+        check(ScanHeader { range_noise_per_m: -1.0, ..good_header(10) }, &pts, RejectReason::InvalidSensorModel);
+        let mut bad = pts.clone();
+        bad[2].range_m = f32::NAN;
+        check(good_header(10), &bad, RejectReason::InvalidRange);
+        bad[2].range_m = -1.0;
+        check(good_header(10), &bad, RejectReason::InvalidRange);
+        let mut bad = pts.clone();
+        bad[0].inclination_rad = 4.0;
+        check(good_header(10), &bad, RejectReason::InvalidAngle);
+        let mut bad = pts.clone();
+        bad[0].flags = 0x80;
+        check(good_header(10), &bad, RejectReason::InvalidFlags);
+        let none: Vec<ScanPoint> = pts.iter().map(|p| ScanPoint { flags: FLAG_NO_RETURN, ..*p }).collect();
+        check(good_header(10), &none, RejectReason::NoReturns);
+    }
+
+    #[test]
+    fn sequences_refuse_replays_and_count_gaps() {
+        let mut t = SequenceTracker::default();
+        assert_eq!(t.check(1, 5), Ok(0));
+        t.accept(1, 5);
+        assert_eq!(t.check(1, 5), Err(RejectReason::StaleSequence));
+        assert_eq!(t.check(1, 4), Err(RejectReason::StaleSequence));
+        assert_eq!(t.check(1, 8), Ok(2));
+        assert_eq!(t.check(2, 0), Ok(0));
+    }
+
+    #[test]
+    fn reason_names_are_unique() {
+        let mut names: Vec<_> = RejectReason::ALL.iter().map(|r| r.as_str()).collect();
+        names.sort();
+        names.dedup();
+        assert_eq!(names.len(), RejectReason::ALL.len());
+        for (i, r) in RejectReason::ALL.iter().enumerate() {
+            assert_eq!(*r as usize, i, "ALL must follow declaration order");
+        }
+    }
+}

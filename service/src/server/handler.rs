@@ -1,0 +1,147 @@
+//! One request end to end: decode, check version and limits, evaluate, encode.
+
+use super::ServerState;
+use crate::map::query;
+use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::keys::QueryKind;
+use rangegp_proto::msg::*;
+use rangegp_proto::PROTOCOL_VERSION;
+use serde::{de::DeserializeOwned, Serialize};
+use std::sync::atomic::Ordering::Relaxed;
+use tracing::info_span;
+
+/// Which queryable a query arrived on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Endpoint {
+    /// `rangegp/<map>/query/<kind>`.
+    Query(QueryKind),
+    /// `rangegp/<map>/status`.
+    Status,
+}
+
+/// A request that is answered with `reply_err`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Failure {
+    /// Error class.
+    pub code: ErrorCode,
+    /// Detail for the caller.
+    pub message: String,
+}
+
+fn fail<T>(code: ErrorCode, message: impl Into<String>) -> Result<T, Failure> {
+    Err(Failure { code, message: message.into() })
+}
+
+/// Answers one request payload; the reply is in the request's encoding.
+pub fn answer(endpoint: Endpoint, encoding: Encoding, payload: &[u8], state: &ServerState) -> Result<Vec<u8>, Failure> {
+    let _span = info_span!("query", endpoint = ?endpoint, bytes = payload.len()).entered();
+    match endpoint {
+        Endpoint::Status => {
+            if !payload.is_empty() {
+                decode::<StatusRequest>(encoding, payload)?;
+            }
+            encode(encoding, &status(state))
+        }
+        Endpoint::Query(QueryKind::Elevation) => {
+            let req: ElevationRequest = decode(encoding, payload)?;
+            check_points(&req.points, state)?;
+            let snap = snapshot(state)?;
+            let items = query::par_map(&req.points, state.batch_threads, |p| query::elevation(&snap, p[0], p[1]));
+            encode(encoding, &ElevationReply { version: PROTOCOL_VERSION, items })
+        }
+        Endpoint::Query(QueryKind::Variance) => {
+            let req: VarianceRequest = decode(encoding, payload)?;
+            check_points(&req.points, state)?;
+            let snap = snapshot(state)?;
+            let items = query::par_map(&req.points, state.batch_threads, |p| query::variance(&snap, p[0], p[1]));
+            encode(encoding, &VarianceReply { version: PROTOCOL_VERSION, items })
+        }
+        Endpoint::Query(QueryKind::Ray) => {
+            let req: RayRequest = decode(encoding, payload)?;
+            check_batch(req.rays.len(), state)?;
+            for (i, r) in req.rays.iter().enumerate() {
+                check_ray(i, r, state)?;
+            }
+            let snap = snapshot(state)?;
+            let items = query::par_map(&req.rays, state.batch_threads, |r| query::ray(&snap, r));
+            encode(encoding, &RayReply { version: PROTOCOL_VERSION, items })
+        }
+    }
+}
+
+fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, Failure> {
+    let version = codec::peek_version(encoding, payload);
+    if version.is_some_and(|v| v != PROTOCOL_VERSION) {
+        return fail(
+            ErrorCode::UnsupportedVersion,
+            format!("protocol version {} not supported (daemon speaks {PROTOCOL_VERSION})", version.unwrap_or(0)),
+        );
+    }
+    codec::decode(encoding, payload)
+        .or_else(|e| fail(ErrorCode::MalformedRequest, format!("cannot decode the request ({encoding:?}): {e}")))
+}
+
+fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failure> {
+    codec::encode(encoding, value).or_else(|e| fail(ErrorCode::Internal, format!("cannot encode the reply: {e}")))
+}
+
+fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
+    let snap = state.snapshot.load_full();
+    if snap.maps.is_empty() {
+        return fail(ErrorCode::NoMap, "no scan has been mapped yet");
+    }
+    Ok(snap)
+}
+
+fn check_batch(len: usize, state: &ServerState) -> Result<(), Failure> {
+    if len > state.max_batch {
+        return fail(ErrorCode::BatchTooLarge, format!("batch of {len} exceeds the limit of {}", state.max_batch));
+    }
+    Ok(())
+}
+
+fn check_points(points: &[[f64; 2]], state: &ServerState) -> Result<(), Failure> {
+    check_batch(points.len(), state)?;
+    match points.iter().position(|p| !p[0].is_finite() || !p[1].is_finite()) {
+        Some(i) => fail(ErrorCode::InvalidArgument, format!("point {i} is not finite")),
+        None => Ok(()),
+    }
+}
+
+fn check_ray(i: usize, r: &Ray, state: &ServerState) -> Result<(), Failure> {
+    let finite = r.origin_m.iter().chain(&r.direction).all(|v| v.is_finite());
+    let norm = r.direction.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !finite || norm < 1e-9 {
+        return fail(ErrorCode::InvalidArgument, format!("ray {i}: origin and direction must be finite, direction non-zero"));
+    }
+    if !(r.max_range_m > 0.0 && r.max_range_m <= state.max_ray_range_m) {
+        return fail(
+            ErrorCode::InvalidArgument,
+            format!("ray {i}: max_range_m must be in (0, {}]", state.max_ray_range_m),
+        );
+    }
+    Ok(())
+}
+
+fn status(state: &ServerState) -> StatusReply {
+    let m = &state.metrics;
+    let (fit_ms_last, fit_ms_mean) = m.fit_ms();
+    StatusReply {
+        version: PROTOCOL_VERSION,
+        map_id: state.keys.map_id().to_owned(),
+        uptime_s: m.uptime_s(),
+        scans_received: m.received.load(Relaxed),
+        scans_accepted: m.accepted.load(Relaxed),
+        scans_rejected: m.rejected_total(),
+        rejections: m.rejections(),
+        scans_skipped: m.skipped.load(Relaxed),
+        sequence_gaps: m.sequence_gaps.load(Relaxed),
+        window_len: state.snapshot.load().maps.len() as u32,
+        window_capacity: state.window_capacity as u32,
+        hyperparameters: state.hyperparameters.clone(),
+        fit_ms_last,
+        fit_ms_mean,
+        queries_ok: m.queries_ok.load(Relaxed),
+        queries_failed: m.queries_failed.load(Relaxed),
+    }
+}
