@@ -1,0 +1,92 @@
+//! End-to-end: scans in over iceoryx2, queries out over Zenoh, against ground truth.
+
+use nalgebra::Vector3;
+use rangegp_client::scangen::now_ns;
+use rangegp_proto::msg::{Ray, Source};
+use rangegp_tests::{rms, world, Harness};
+
+#[test]
+fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
+    let h = Harness::start(|_| {})?;
+    let mut publisher = h.publisher(1)?;
+    let mut w = world(3, 5);
+    let mut poses = Vec::new();
+    for i in 0..5 {
+        let scan = w.scan(i, now_ns());
+        publisher.publish(scan.header, &scan.points)?;
+        poses.push((scan.pose, w.path.waypoints[i][2]));
+    }
+    let status = h.wait_status("5 accepted scans", |s| s.scans_accepted == 5)?;
+    assert_eq!(status.scans_rejected, 0);
+    assert_eq!(status.window_len, 5);
+
+    // Points in front of each pose, inside the scanner's field of view.
+    let mut points = Vec::new();
+    for (pose, heading) in &poses {
+        let s = pose.translation.vector;
+        for k in 0..20 {
+            let az = heading + (-70.0 + 7.0 * k as f64).to_radians();
+            let rho = 3.5 + (k % 5) as f64;
+            points.push([s.x + rho * az.cos(), s.y + rho * az.sin()]);
+        }
+    }
+    let items = h.client.elevation(&points)?;
+    let mut errors = Vec::new();
+    for (p, item) in points.iter().zip(&items) {
+        if !item.observed {
+            continue;
+        }
+        assert_eq!(item.source, Source::Window);
+        let (z, var) = (item.z_m.expect("z"), item.z_var_m2.expect("variance"));
+        assert!(var > 0.0, "σ must be positive");
+        errors.push(z - w.terrain.height(p[0], p[1]).expect("on the map"));
+    }
+    assert!(errors.len() >= 80, "only {} of 100 points observed", errors.len());
+    let e = rms(&errors);
+    assert!(e < 0.05, "elevation RMSE {e}");
+    // Far from every scan: honestly unanswered, never a silent prior.
+    let far = h.client.elevation(&[[25.0, -25.0]])?;
+    assert_eq!((far[0].source, far[0].z_m), (Source::None, None));
+    Ok(())
+}
+
+#[test]
+fn ray_from_a_pose_never_visited_meets_the_ground_truth() -> anyhow::Result<()> {
+    let h = Harness::start(|_| {})?;
+    let mut publisher = h.publisher(9)?;
+    let mut w = world(5, 3);
+    let mut last = None;
+    for i in 0..3 {
+        let scan = w.scan(i, now_ns());
+        publisher.publish(scan.header, &scan.points)?;
+        last = Some((scan.pose, w.path.waypoints[i][2]));
+    }
+    h.wait_status("3 accepted scans", |s| s.scans_accepted == 3)?;
+    let (pose, heading) = last.expect("scans");
+    let s = pose.translation.vector;
+    // An origin 0.6 m to the side and 0.5 m above the last sensor: no scan was taken there.
+    let side = Vector3::new(-heading.sin(), heading.cos(), 0.0);
+    let origin = s + side * 0.6 + Vector3::new(0.0, 0.0, 0.5);
+    let mut rays = Vec::new();
+    let mut truths = Vec::new();
+    for k in 0..9 {
+        let az = heading + (-40.0 + 10.0 * k as f64).to_radians();
+        let dir = Vector3::new(az.cos(), az.sin(), -0.3).normalize();
+        if let Some(t) = w.terrain.cast(origin, dir, 9.0) {
+            rays.push(Ray { origin_m: origin.into(), direction: dir.into(), max_range_m: 9.0 });
+            truths.push(t);
+        }
+    }
+    assert!(rays.len() >= 6);
+    let items = h.client.ray(&rays)?;
+    let mut errors = Vec::new();
+    for (item, truth) in items.iter().zip(&truths) {
+        let r = item.range_m.expect("hit predicted");
+        assert!(item.hit_probability > 0.9);
+        assert!(item.range_var_m2.expect("variance") > 0.0);
+        errors.push(r - truth);
+    }
+    let e = rms(&errors);
+    assert!(e < 0.1, "ray range RMSE {e}");
+    Ok(())
+}
