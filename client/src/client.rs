@@ -143,45 +143,75 @@ impl Client {
 
     /// Elevation at map (x, y) points.
     pub fn elevation(&self, points: &[[f64; 2]]) -> Result<Vec<ElevationItem>, ClientError> {
-        let req = ElevationRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
+        let req = ElevationRequest {
+            version: PROTOCOL_VERSION,
+            points: points.to_vec(),
+        };
         let rep: ElevationReply = self.call(&self.keys.query(QueryKind::Elevation), &req)?;
         check_len(points.len(), rep.items)
     }
 
     /// Elevation variance at map (x, y) points.
     pub fn variance(&self, points: &[[f64; 2]]) -> Result<Vec<VarianceItem>, ClientError> {
-        let req = VarianceRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
+        let req = VarianceRequest {
+            version: PROTOCOL_VERSION,
+            points: points.to_vec(),
+        };
         let rep: VarianceReply = self.call(&self.keys.query(QueryKind::Variance), &req)?;
         check_len(points.len(), rep.items)
     }
 
     /// Casts rays through the map.
     pub fn ray(&self, rays: &[Ray]) -> Result<Vec<RayItem>, ClientError> {
-        let req = RayRequest { version: PROTOCOL_VERSION, rays: rays.to_vec() };
+        let req = RayRequest {
+            version: PROTOCOL_VERSION,
+            rays: rays.to_vec(),
+        };
         let rep: RayReply = self.call(&self.keys.query(QueryKind::Ray), &req)?;
         check_len(rays.len(), rep.items)
     }
 
     /// The daemon's counters.
     pub fn status(&self) -> Result<StatusReply, ClientError> {
-        self.call(&self.keys.status(), &StatusRequest { version: PROTOCOL_VERSION })
+        self.call(
+            &self.keys.status(),
+            &StatusRequest {
+                version: PROTOCOL_VERSION,
+            },
+        )
     }
 
     /// Async form of [`Client::elevation`].
     pub async fn elevation_async(&self, points: &[[f64; 2]]) -> Result<Vec<ElevationItem>, ClientError> {
-        let req = ElevationRequest { version: PROTOCOL_VERSION, points: points.to_vec() };
-        let rep: ElevationReply = self.call_async(&self.keys.query(QueryKind::Elevation), &req).await?;
+        let req = ElevationRequest {
+            version: PROTOCOL_VERSION,
+            points: points.to_vec(),
+        };
+        let rep: ElevationReply = self
+            .call_async(&self.keys.query(QueryKind::Elevation), &req)
+            .await?;
         check_len(points.len(), rep.items)
     }
 
     /// Async form of [`Client::status`].
     pub async fn status_async(&self) -> Result<StatusReply, ClientError> {
-        self.call_async(&self.keys.status(), &StatusRequest { version: PROTOCOL_VERSION }).await
+        self.call_async(
+            &self.keys.status(),
+            &StatusRequest {
+                version: PROTOCOL_VERSION,
+            },
+        )
+        .await
     }
 
     /// Sends raw bytes to `rangegp/<map>/query/<kind>` and returns the raw reply (for tools and
     /// tests of the daemon's error handling).
-    pub fn call_raw(&self, key: &str, payload: Vec<u8>, encoding: Encoding) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
+    pub fn call_raw(
+        &self,
+        key: &str,
+        payload: Vec<u8>,
+        encoding: Encoding,
+    ) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
         let replies = self
             .session
             .get(key)
@@ -204,11 +234,18 @@ impl Client {
         let payload = codec::encode(self.encoding, req)?;
         match self.call_raw(key, payload, self.encoding)? {
             Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
-            Err(e) => Err(ClientError::Server { code: e.code, message: e.message }),
+            Err(e) => Err(ClientError::Server {
+                code: e.code,
+                message: e.message,
+            }),
         }
     }
 
-    async fn call_async<Q: Serialize, R: DeserializeOwned>(&self, key: &str, req: &Q) -> Result<R, ClientError> {
+    async fn call_async<Q: Serialize, R: DeserializeOwned>(
+        &self,
+        key: &str,
+        req: &Q,
+    ) -> Result<R, ClientError> {
         let payload = codec::encode(self.encoding, req)?;
         let replies = self
             .session
@@ -225,12 +262,18 @@ impl Client {
             .map_err(|_| ClientError::Timeout(self.timeout))?;
         match decode_reply(reply, self.encoding)? {
             Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
-            Err(e) => Err(ClientError::Server { code: e.code, message: e.message }),
+            Err(e) => Err(ClientError::Server {
+                code: e.code,
+                message: e.message,
+            }),
         }
     }
 }
 
-fn decode_reply(reply: zenoh::query::Reply, encoding: Encoding) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
+fn decode_reply(
+    reply: zenoh::query::Reply,
+    encoding: Encoding,
+) -> Result<Result<Vec<u8>, ErrorReply>, ClientError> {
     match reply.result() {
         Ok(sample) => Ok(Ok(sample.payload().to_bytes().into_owned())),
         Err(err) => {
@@ -244,6 +287,9 @@ fn check_len<T>(sent: usize, items: Vec<T>) -> Result<Vec<T>, ClientError> {
     if items.len() == sent {
         Ok(items)
     } else {
-        Err(ClientError::BatchMismatch { sent, got: items.len() })
+        Err(ClientError::BatchMismatch {
+            sent,
+            got: items.len(),
+        })
     }
 }

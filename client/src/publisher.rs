@@ -54,7 +54,8 @@ impl ScanPublisher {
     /// Opens `service_name` and creates a publisher sized for `max_points` per scan (it grows by
     /// powers of two if a larger scan comes).
     pub fn new(service_name: &str, publisher_id: u64, max_points: usize) -> Result<Self, PublishError> {
-        let name = ServiceName::new(service_name).map_err(|_| PublishError::ServiceName(service_name.to_owned()))?;
+        let name =
+            ServiceName::new(service_name).map_err(|_| PublishError::ServiceName(service_name.to_owned()))?;
         let node = NodeBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
@@ -67,7 +68,13 @@ impl ScanPublisher {
             .max_loaned_samples(2)
             .create()
             .map_err(|e| PublishError::Publisher(format!("{e:?}")))?;
-        Ok(Self { publisher, publisher_id, next_sequence: 1, _service: service, _node: node })
+        Ok(Self {
+            publisher,
+            publisher_id,
+            next_sequence: 1,
+            _service: service,
+            _node: node,
+        })
     }
 
     /// Publishes one scan: fills in version, publisher id, point count and the next sequence
@@ -92,7 +99,10 @@ impl ScanPublisher {
         let mut sample = self
             .publisher
             .loan_slice_uninit(points.len())
-            .map_err(|e| PublishError::Loan { points: points.len(), reason: format!("{e:?}") })?;
+            .map_err(|e| PublishError::Loan {
+                points: points.len(),
+                reason: format!("{e:?}"),
+            })?;
         *sample.user_header_mut() = header;
         let sample = sample.write_from_fn(|i| points[i]);
         sample.send().map_err(|e| PublishError::Send(format!("{e:?}")))?;

@@ -8,7 +8,12 @@ use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset, S
 
 /// Converts simulated rays taken from `pose` into a header (sequence and publisher id left for
 /// the publisher) and the point slice.
-pub fn to_message(preset: &ScannerPreset, pose: &Isometry3<f64>, rays: &[SimRay], stamp_ns: u64) -> (ScanHeader, Vec<ScanPoint>) {
+pub fn to_message(
+    preset: &ScannerPreset,
+    pose: &Isometry3<f64>,
+    rays: &[SimRay],
+    stamp_ns: u64,
+) -> (ScanHeader, Vec<ScanPoint>) {
     let q = pose.rotation.quaternion();
     let t = pose.translation.vector;
     let header = ScanHeader {
@@ -33,7 +38,12 @@ pub fn to_message(preset: &ScannerPreset, pose: &Isometry3<f64>, rays: &[SimRay]
             azimuth_rad: r.azimuth_rad as f32,
             ring: r.ring,
             column: r.column,
-            flags: FLAG_RING_COLUMN_VALID | if r.measured_range_m.is_none() { FLAG_NO_RETURN } else { 0 },
+            flags: FLAG_RING_COLUMN_VALID
+                | if r.measured_range_m.is_none() {
+                    FLAG_NO_RETURN
+                } else {
+                    0
+                },
             reserved: 0,
         })
         .collect();
@@ -67,9 +77,20 @@ impl ScanGenerator {
     /// A cratered world of `size_m` metres from `seed`, with a wander path of `scans` poses
     /// `step_m` apart.
     pub fn new(seed: u64, size_m: f64, preset: ScannerPreset, scans: usize, step_m: f64) -> Self {
-        let terrain = Heightmap::cratered(seed, &CraterParams { size_m, ..CraterParams::default() });
+        let terrain = Heightmap::cratered(
+            seed,
+            &CraterParams {
+                size_m,
+                ..CraterParams::default()
+            },
+        );
         let path = Path::wander(seed ^ 0x5eed, &terrain, scans, step_m, 0.25);
-        Self { terrain, path, preset, rng: Pcg64::seed_from_u64(seed ^ 0x0015e) }
+        Self {
+            terrain,
+            path,
+            preset,
+            rng: Pcg64::seed_from_u64(seed ^ 0x0015e),
+        }
     }
 
     /// Scans on the path.

@@ -33,7 +33,11 @@ pub fn zenoh_config(
     set(&mut config, "mode", serde_json::Value::from(mode).to_string())?;
     set(&mut config, "listen/endpoints", list(listen))?;
     set(&mut config, "connect/endpoints", list(connect))?;
-    set(&mut config, "scouting/multicast/enabled", multicast_scouting.to_string())?;
+    set(
+        &mut config,
+        "scouting/multicast/enabled",
+        multicast_scouting.to_string(),
+    )?;
     Ok(config)
 }
 

@@ -105,6 +105,15 @@ impl ScanPoint {
     }
 }
 
+/// Publishers the scan service admits (iceoryx2's default of 2 silently limits a robot stack).
+pub const SCAN_SERVICE_MAX_PUBLISHERS: usize = 16;
+/// Subscribers the scan service admits (the daemon plus tools such as recorders).
+pub const SCAN_SERVICE_MAX_SUBSCRIBERS: usize = 4;
+/// Samples a subscriber may hold queued before the oldest is overwritten.
+pub const SCAN_SERVICE_SUBSCRIBER_BUFFER: usize = 8;
+/// Nodes the scan service admits.
+pub const SCAN_SERVICE_MAX_NODES: usize = 32;
+
 /// Error opening or creating the iceoryx2 scan service.
 pub type ScanServiceError = iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError;
 
@@ -175,12 +184,3 @@ mod tests {
         }
     }
 }
-
-/// Publishers the scan service admits (iceoryx2's default of 2 silently limits a robot stack).
-pub const SCAN_SERVICE_MAX_PUBLISHERS: usize = 16;
-/// Subscribers the scan service admits (the daemon plus tools such as recorders).
-pub const SCAN_SERVICE_MAX_SUBSCRIBERS: usize = 4;
-/// Samples a subscriber may hold queued before the oldest is overwritten.
-pub const SCAN_SERVICE_SUBSCRIBER_BUFFER: usize = 8;
-/// Nodes the scan service admits.
-pub const SCAN_SERVICE_MAX_NODES: usize = 32;

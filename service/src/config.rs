@@ -289,17 +289,26 @@ mod tests {
     fn defaults_round_trip_through_toml() {
         let text = toml::to_string(&Config::default()).expect("serialise");
         assert_eq!(Config::from_toml(&text).expect("parse"), Config::default());
-        assert_eq!(Config::from_toml("").expect("empty is defaults"), Config::default());
+        assert_eq!(
+            Config::from_toml("").expect("empty is defaults"),
+            Config::default()
+        );
     }
 
     #[test]
     fn unknown_fields_and_bad_values_are_refused() {
-        assert!(matches!(Config::from_toml("mapid = \"x\""), Err(ConfigError::Parse(_))));
+        assert!(matches!(
+            Config::from_toml("mapid = \"x\""),
+            Err(ConfigError::Parse(_))
+        ));
         assert!(matches!(
             Config::from_toml("[gp]\nlength_scale = -1.0"),
             Err(ConfigError::Invalid(_))
         ));
-        assert!(matches!(Config::from_toml("map_id = \"a/b\""), Err(ConfigError::Invalid(_))));
+        assert!(matches!(
+            Config::from_toml("map_id = \"a/b\""),
+            Err(ConfigError::Invalid(_))
+        ));
     }
 
     #[test]

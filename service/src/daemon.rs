@@ -1,8 +1,8 @@
 //! The daemon: ingest thread → newest-wins queue → fitter thread → window → snapshot → queries.
 
 use crate::config::Config;
-use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits};
 use crate::ingest::subscriber::IngestSettings;
+use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits};
 use crate::map::local::{MapParams, ScanInput};
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::metrics::Metrics;
@@ -53,7 +53,9 @@ pub struct Daemon {
 
 impl std::fmt::Debug for Daemon {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Daemon").field("map", &self.state.keys.map_id()).finish()
+        f.debug_struct("Daemon")
+            .field("map", &self.state.keys.map_id())
+            .finish()
     }
 }
 
@@ -63,9 +65,16 @@ impl Daemon {
         config.validate()?;
         let zconf = match &config.zenoh.config_file {
             Some(path) => zenoh::Config::from_file(path).map_err(|e| StartError::Zenoh(e.to_string()))?,
-            None => zenoh_config(&config.zenoh.mode, &config.zenoh.listen, &config.zenoh.connect, config.zenoh.multicast_scouting)?,
+            None => zenoh_config(
+                &config.zenoh.mode,
+                &config.zenoh.listen,
+                &config.zenoh.connect,
+                config.zenoh.multicast_scouting,
+            )?,
         };
-        let session = zenoh::open(zconf).wait().map_err(|e| StartError::Zenoh(e.to_string()))?;
+        let session = zenoh::open(zconf)
+            .wait()
+            .map_err(|e| StartError::Zenoh(e.to_string()))?;
         let metrics = Arc::new(Metrics::default());
         let shutdown = Arc::new(AtomicBool::new(false));
         let params = config.map_params();
@@ -96,7 +105,9 @@ impl Daemon {
         let ingest = spawn_ingest(
             IngestSettings {
                 service_name: config.scan_service_name(),
-                limits: ValidationLimits { max_points: config.ingest.max_points },
+                limits: ValidationLimits {
+                    max_points: config.ingest.max_points,
+                },
                 poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
                 cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),
             },
@@ -112,8 +123,19 @@ impl Daemon {
                 return Err(e.into());
             }
         };
-        info!(map = config.map_id, scans = config.scan_service_name(), "rangegpd started");
-        Ok(Self { shutdown, state, server: Some(server), ingest: Some(ingest), fitter: Some(fitter), session })
+        info!(
+            map = config.map_id,
+            scans = config.scan_service_name(),
+            "rangegpd started"
+        );
+        Ok(Self {
+            shutdown,
+            state,
+            server: Some(server),
+            ingest: Some(ingest),
+            fitter: Some(fitter),
+            session,
+        })
     }
 
     /// Shared counters.
@@ -154,11 +176,25 @@ impl Drop for Daemon {
     }
 }
 
-fn fit_loop(queue: &LatestQueue<ScanInput>, state: &ServerState, params: &MapParams, capacity: usize, shutdown: &AtomicBool) {
+fn fit_loop(
+    queue: &LatestQueue<ScanInput>,
+    state: &ServerState,
+    params: &MapParams,
+    capacity: usize,
+    shutdown: &AtomicBool,
+) {
     let mut window = Window::new(capacity);
     while !shutdown.load(Ordering::Relaxed) {
-        let Some(scan) = queue.pop_timeout(Duration::from_millis(50)) else { continue };
-        let _span = info_span!("fit", publisher = scan.publisher_id, sequence = scan.sequence, rays = scan.rays.len()).entered();
+        let Some(scan) = queue.pop_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let _span = info_span!(
+            "fit",
+            publisher = scan.publisher_id,
+            sequence = scan.sequence,
+            rays = scan.rays.len()
+        )
+        .entered();
         let started = Instant::now();
         match LocalRangeMap::fit(&scan, params) {
             Ok(map) => {

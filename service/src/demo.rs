@@ -75,24 +75,43 @@ pub struct DemoSummary {
 
 /// Runs the demo end to end.
 pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
-    if opts.scans == 0 || !(opts.rate_hz > 0.0) || !(opts.grid_resolution_m > 0.0) {
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    if opts.scans == 0 || !positive(opts.rate_hz) || !positive(opts.grid_resolution_m) {
         bail!("--scans, --rate-hz and --grid-resolution-m must be positive");
     }
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     let endpoint = free_loopback_endpoint().context("reserving a loopback port")?;
     let map_id = format!("demo-{}-{}", std::process::id(), now_ns() % 1_000_000_007);
-    let mut config = Config { map_id: map_id.clone(), ..Config::default() };
+    let mut config = Config {
+        map_id: map_id.clone(),
+        ..Config::default()
+    };
     config.zenoh.listen = vec![endpoint.clone()];
     config.window.capacity = opts.scans;
     let daemon = Daemon::start(&config).context("starting the daemon")?;
 
-    let client = Client::builder(&map_id).connect([endpoint]).timeout(Duration::from_secs(10)).open()?;
-    client.wait_for_daemon(Duration::from_secs(10)).context("daemon not reachable over zenoh")?;
+    let client = Client::builder(&map_id)
+        .connect([endpoint])
+        .timeout(Duration::from_secs(10))
+        .open()?;
+    client
+        .wait_for_daemon(Duration::from_secs(10))
+        .context("daemon not reachable over zenoh")?;
     let mut rover = ScanPublisher::new(&config.scan_service_name(), 1, 4096)?;
-    let mut world = ScanGenerator::new(opts.seed, 100.0, ScannerPreset::seed000(), opts.scans, opts.step_m);
+    let mut world = ScanGenerator::new(
+        opts.seed,
+        100.0,
+        ScannerPreset::seed000(),
+        opts.scans,
+        opts.step_m,
+    );
     let mut planner_rng = Pcg64::seed_from_u64(opts.seed ^ 0x91a2);
 
-    let bar = if opts.quiet { ProgressBar::hidden() } else { ProgressBar::new(opts.scans as u64) };
+    let bar = if opts.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(opts.scans as u64)
+    };
     bar.set_style(
         ProgressStyle::with_template("{spinner} rover {pos}/{len} scans [{bar:30}] {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -111,7 +130,9 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
             let az = heading + planner_rng.random_range(-80f64..80.0).to_radians();
             let rho = planner_rng.random_range(3.0..9.0);
             let (x, y) = (s.x + rho * az.cos(), s.y + rho * az.sin());
-            let Some(truth) = world.terrain.height(x, y) else { continue };
+            let Some(truth) = world.terrain.height(x, y) else {
+                continue;
+            };
             let sent = Instant::now();
             let item = client.elevation(&[[x, y]])?.remove(0);
             rtts.push(sent.elapsed().as_secs_f64() * 1e6);
@@ -131,7 +152,11 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
 
     let status = client.status()?;
     let grid_observed_fraction = draw_pictures(&client, &world, opts)?;
-    let covered = errors.iter().zip(&sigmas).filter(|(e, s)| e.abs() <= 1.96 * **s).count();
+    let covered = errors
+        .iter()
+        .zip(&sigmas)
+        .filter(|(e, s)| e.abs() <= 1.96 * **s)
+        .count();
     let summary = DemoSummary {
         scans_accepted: status.scans_accepted,
         scans_rejected: status.scans_rejected,
@@ -145,7 +170,10 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
         fit_ms_mean: status.fit_ms_mean,
         grid_observed_fraction,
     };
-    std::fs::write(opts.out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    std::fs::write(
+        opts.out.join("summary.json"),
+        serde_json::to_string_pretty(&summary)?,
+    )?;
     drop(rover);
     daemon.shutdown();
     Ok(summary)
@@ -172,8 +200,14 @@ fn draw_pictures(client: &Client, world: &ScanGenerator, opts: &DemoOptions) -> 
     let ys: Vec<f64> = world.path.waypoints.iter().map(|w| w[1]).collect();
     let lim = world.terrain.half_extent();
     let fold = |v: &[f64], f: fn(f64, f64) -> f64, init: f64| v.iter().copied().fold(init, f);
-    let (x0, x1) = ((fold(&xs, f64::min, f64::INFINITY) - 10.0).max(-lim), (fold(&xs, f64::max, f64::NEG_INFINITY) + 10.0).min(lim));
-    let (y0, y1) = ((fold(&ys, f64::min, f64::INFINITY) - 10.0).max(-lim), (fold(&ys, f64::max, f64::NEG_INFINITY) + 10.0).min(lim));
+    let (x0, x1) = (
+        (fold(&xs, f64::min, f64::INFINITY) - 10.0).max(-lim),
+        (fold(&xs, f64::max, f64::NEG_INFINITY) + 10.0).min(lim),
+    );
+    let (y0, y1) = (
+        (fold(&ys, f64::min, f64::INFINITY) - 10.0).max(-lim),
+        (fold(&ys, f64::max, f64::NEG_INFINITY) + 10.0).min(lim),
+    );
     let res = opts.grid_resolution_m;
     let (nx, ny) = (((x1 - x0) / res) as usize + 1, ((y1 - y0) / res) as usize + 1);
     let cells: Vec<[f64; 2]> = (0..ny)
@@ -183,7 +217,14 @@ fn draw_pictures(client: &Client, world: &ScanGenerator, opts: &DemoOptions) -> 
     for chunk in cells.chunks(4096) {
         items.extend(client.elevation(chunk)?);
     }
-    let raster = |values: Vec<Option<f64>>| Raster { nx, ny, x0, y0, resolution: res, values };
+    let raster = |values: Vec<Option<f64>>| Raster {
+        nx,
+        ny,
+        x0,
+        y0,
+        resolution: res,
+        values,
+    };
     let z = raster(items.iter().map(|i| i.z_m).collect());
     let sigma = raster(items.iter().map(|i| i.z_var_m2.map(f64::sqrt)).collect());
     let error = raster(
@@ -196,10 +237,38 @@ fn draw_pictures(client: &Client, world: &ScanGenerator, opts: &DemoOptions) -> 
     let truth = raster(cells.iter().map(|c| world.terrain.height(c[0], c[1])).collect());
     let path: Vec<[f64; 2]> = world.path.waypoints.iter().map(|w| [w[0], w[1]]).collect();
     let zrange = truth.range();
-    save_heatmap(&opts.out.join("elevation.png"), &z, zrange, colorous::VIRIDIS, &path, 4)?;
-    save_heatmap(&opts.out.join("truth.png"), &truth, zrange, colorous::VIRIDIS, &path, 4)?;
-    save_heatmap(&opts.out.join("sigma.png"), &sigma, None, colorous::MAGMA, &path, 4)?;
-    save_heatmap(&opts.out.join("abs_error.png"), &error, Some((0.0, 0.1)), colorous::INFERNO, &path, 4)?;
+    save_heatmap(
+        &opts.out.join("elevation.png"),
+        &z,
+        zrange,
+        colorous::VIRIDIS,
+        &path,
+        4,
+    )?;
+    save_heatmap(
+        &opts.out.join("truth.png"),
+        &truth,
+        zrange,
+        colorous::VIRIDIS,
+        &path,
+        4,
+    )?;
+    save_heatmap(
+        &opts.out.join("sigma.png"),
+        &sigma,
+        None,
+        colorous::MAGMA,
+        &path,
+        4,
+    )?;
+    save_heatmap(
+        &opts.out.join("abs_error.png"),
+        &error,
+        Some((0.0, 0.1)),
+        colorous::INFERNO,
+        &path,
+        4,
+    )?;
     Ok(items.iter().filter(|i| i.z_m.is_some()).count() as f64 / items.len().max(1) as f64)
 }
 
@@ -218,12 +287,21 @@ fn percentile(v: &mut [f64], q: f64) -> f64 {
 /// Prints the end-of-demo table.
 pub fn print_table(s: &DemoSummary, out: &std::path::Path) {
     println!("\nrangegp demo — seed-000 scanner on cratered terrain");
-    println!("  scans accepted / rejected     {:>10} / {}", s.scans_accepted, s.scans_rejected);
-    println!("  planner points observed       {:>10} (unobserved {})", s.points_observed, s.points_unobserved);
+    println!(
+        "  scans accepted / rejected     {:>10} / {}",
+        s.scans_accepted, s.scans_rejected
+    );
+    println!(
+        "  planner points observed       {:>10} (unobserved {})",
+        s.points_observed, s.points_unobserved
+    );
     println!("  elevation RMSE vs truth       {:>10.4} m", s.elevation_rmse_m);
     println!("  mean predicted σ_z            {:>10.4} m", s.mean_sigma_m);
     println!("  95 % coverage                 {:>10.3}", s.coverage95);
-    println!("  query round trip p50 / p99    {:>10.0} / {:.0} µs", s.query_p50_us, s.query_p99_us);
+    println!(
+        "  query round trip p50 / p99    {:>10.0} / {:.0} µs",
+        s.query_p50_us, s.query_p99_us
+    );
     println!("  fit time per scan (mean)      {:>10.1} ms", s.fit_ms_mean);
     println!("  output                        {}/{{summary.json, elevation.png, sigma.png, abs_error.png, truth.png}}", out.display());
 }

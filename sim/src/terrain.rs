@@ -71,10 +71,7 @@ impl Heightmap {
         let area = p.size_m * p.size_m;
         let cum = |d: f64| p.density_per_m2_at_1m * d.powf(-p.sfd_exponent);
         let count = ((cum(p.d_min_m) - cum(p.d_max_m)) * area).round() as usize;
-        let (a, b) = (
-            p.d_min_m.powf(-p.sfd_exponent),
-            p.d_max_m.powf(-p.sfd_exponent),
-        );
+        let (a, b) = (p.d_min_m.powf(-p.sfd_exponent), p.d_max_m.powf(-p.sfd_exponent));
         for _ in 0..count {
             let u: f64 = rng.random();
             let d = (a - u * (a - b)).powf(-1.0 / p.sfd_exponent);
@@ -181,15 +178,7 @@ impl Heightmap {
     }
 }
 
-fn stamp_crater(
-    z: &mut [f32],
-    n: usize,
-    res: f64,
-    half: f64,
-    c: [f64; 2],
-    d: f64,
-    p: &CraterParams,
-) {
+fn stamp_crater(z: &mut [f32], n: usize, res: f64, half: f64, c: [f64; 2], d: f64, p: &CraterParams) {
     let r = d / 2.0;
     let depth = p.depth_ratio * d;
     let rim = p.rim_ratio * d;
@@ -223,9 +212,7 @@ fn fractal_roughness(rng: &mut Pcg64, n: usize, res: f64, amplitude: f64) -> Vec
     let mut z = vec![0.0f32; n * n];
     for (wavelength, amp) in [(8.0, amplitude), (2.0, amplitude * 0.35), (0.5, amplitude * 0.1)] {
         let cells = ((n - 1) as f64 * res / wavelength).ceil() as usize + 2;
-        let lattice: Vec<f64> = (0..cells * cells)
-            .map(|_| rng.random_range(-1.0..1.0))
-            .collect();
+        let lattice: Vec<f64> = (0..cells * cells).map(|_| rng.random_range(-1.0..1.0)).collect();
         for j in 0..n {
             let gy = j as f64 * res / wavelength;
             let (jy, fy) = (gy.floor() as usize, smooth(gy.fract()));

@@ -22,7 +22,11 @@ pub fn unique_id(prefix: &str) -> String {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.subsec_nanos())
         .unwrap_or(0);
-    format!("{prefix}_{}_{}_{nanos}", std::process::id(), NEXT.fetch_add(1, Ordering::Relaxed))
+    format!(
+        "{prefix}_{}_{}_{nanos}",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    )
 }
 
 /// A running daemon with a connected client.
@@ -41,19 +45,34 @@ impl Harness {
     /// Starts a daemon with unique names, letting `tweak` adjust the configuration first.
     pub fn start(tweak: impl FnOnce(&mut Config)) -> Result<Self> {
         let endpoint = free_loopback_endpoint()?;
-        let mut config = Config { map_id: unique_id("t"), ..Config::default() };
+        let mut config = Config {
+            map_id: unique_id("t"),
+            ..Config::default()
+        };
         config.zenoh.listen = vec![endpoint.clone()];
         config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
         tweak(&mut config);
         let daemon = Daemon::start(&config)?;
-        let client = Client::builder(&config.map_id).connect([endpoint.clone()]).timeout(WAIT).open()?;
+        let client = Client::builder(&config.map_id)
+            .connect([endpoint.clone()])
+            .timeout(WAIT)
+            .open()?;
         client.wait_for_daemon(WAIT)?;
-        Ok(Self { daemon, client, config, endpoint })
+        Ok(Self {
+            daemon,
+            client,
+            config,
+            endpoint,
+        })
     }
 
     /// A publisher on this daemon's scan service.
     pub fn publisher(&self, publisher_id: u64) -> Result<ScanPublisher> {
-        Ok(ScanPublisher::new(&self.config.scan_service_name(), publisher_id, 4096)?)
+        Ok(ScanPublisher::new(
+            &self.config.scan_service_name(),
+            publisher_id,
+            4096,
+        )?)
     }
 
     /// Polls status until `done` holds (bounded by [`WAIT`]).

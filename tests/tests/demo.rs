@@ -23,7 +23,14 @@ fn demo_meets_its_accuracy_bars_and_writes_its_outputs() -> anyhow::Result<()> {
     assert!((0.85..=0.99).contains(&s.coverage95), "coverage {}", s.coverage95);
     assert!(s.query_p50_us > 0.0 && s.query_p99_us >= s.query_p50_us);
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
-    for key in ["scans_accepted", "scans_rejected", "elevation_rmse_m", "coverage95", "query_p50_us", "query_p99_us"] {
+    for key in [
+        "scans_accepted",
+        "scans_rejected",
+        "elevation_rmse_m",
+        "coverage95",
+        "query_p50_us",
+        "query_p99_us",
+    ] {
         assert!(summary.get(key).is_some(), "summary.json lacks {key}");
     }
     for png in ["elevation.png", "sigma.png"] {

@@ -73,7 +73,11 @@ fn ray_from_a_pose_never_visited_meets_the_ground_truth() -> anyhow::Result<()> 
         let az = heading + (-40.0 + 10.0 * k as f64).to_radians();
         let dir = Vector3::new(az.cos(), az.sin(), -0.3).normalize();
         if let Some(t) = w.terrain.cast(origin, dir, 9.0) {
-            rays.push(Ray { origin_m: origin.into(), direction: dir.into(), max_range_m: 9.0 });
+            rays.push(Ray {
+                origin_m: origin.into(),
+                direction: dir.into(),
+                max_range_m: 9.0,
+            });
             truths.push(t);
         }
     }

@@ -20,13 +20,24 @@ fn venv_python() -> anyhow::Result<Option<PathBuf>> {
         return Ok(Some(python));
     }
     if Command::new("python3").arg("--version").output().is_err() {
-        anyhow::ensure!(std::env::var_os("CI").is_none(), "python3 is required in CI for the interop test");
+        anyhow::ensure!(
+            std::env::var_os("CI").is_none(),
+            "python3 is required in CI for the interop test"
+        );
         eprintln!("SKIPPED: python3 not found; the Python interop examples were not exercised");
         return Ok(None);
     }
-    let ok = Command::new("python3").args(["-m", "venv"]).arg(&venv).status()?.success();
+    let ok = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(&venv)
+        .status()?
+        .success();
     anyhow::ensure!(ok, "python3 -m venv failed");
-    let ok = Command::new(&python).args(["-m", "pip", "install", "--quiet"]).args(PACKAGES).status()?.success();
+    let ok = Command::new(&python)
+        .args(["-m", "pip", "install", "--quiet"])
+        .args(PACKAGES)
+        .status()?
+        .success();
     anyhow::ensure!(ok, "pip install {PACKAGES:?} failed");
     std::fs::write(&marker, PACKAGES.join("\n"))?;
     Ok(Some(python))
@@ -34,25 +45,50 @@ fn venv_python() -> anyhow::Result<Option<PathBuf>> {
 
 #[test]
 fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()> {
-    let Some(python) = venv_python()? else { return Ok(()) };
+    let Some(python) = venv_python()? else {
+        return Ok(());
+    };
     let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/python");
     let h = Harness::start(|_| {})?;
 
     let out = Command::new(&python)
         .arg(examples.join("publish_scan.py"))
-        .args(["--service", &h.config.scan_service_name(), "--x", "2.0", "--y", "-1.0", "--heading", "0.4"])
+        .args([
+            "--service",
+            &h.config.scan_service_name(),
+            "--x",
+            "2.0",
+            "--y",
+            "-1.0",
+            "--heading",
+            "0.4",
+        ])
         .output()?;
-    anyhow::ensure!(out.status.success(), "publish_scan.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    anyhow::ensure!(
+        out.status.success(),
+        "publish_scan.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     h.wait_status("the Python scan", |s| s.scans_accepted == 1)?;
 
     // Ahead of the sensor (observed) and far away (not observed).
     let out = Command::new(&python)
         .arg(examples.join("query_elevation.py"))
-        .args(["--connect", &h.endpoint, "--map-id", &h.config.map_id, "--timeout"])
+        .args([
+            "--connect",
+            &h.endpoint,
+            "--map-id",
+            &h.config.map_id,
+            "--timeout",
+        ])
         .arg(WAIT.as_secs().to_string())
         .args(["7.0", "1.0", "40.0", "40.0"])
         .output()?;
-    anyhow::ensure!(out.status.success(), "query_elevation.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    anyhow::ensure!(
+        out.status.success(),
+        "query_elevation.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let reply: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     let items = reply["items"].as_array().expect("items");
     assert_eq!(items.len(), 2);

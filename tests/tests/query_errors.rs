@@ -18,7 +18,10 @@ fn code(e: ClientError) -> ErrorCode {
 fn every_bad_request_has_its_code() -> anyhow::Result<()> {
     let h = Harness::start(|c| c.query.max_batch = 100)?;
     let c = &h.client;
-    assert_eq!(code(c.elevation(&[[0.0, 0.0]]).expect_err("no map yet")), ErrorCode::NoMap);
+    assert_eq!(
+        code(c.elevation(&[[0.0, 0.0]]).expect_err("no map yet")),
+        ErrorCode::NoMap
+    );
     assert_eq!(c.status()?.queries_failed, 1);
 
     let mut publisher = h.publisher(2)?;
@@ -27,17 +30,37 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
     publisher.publish(scan.header, &scan.points)?;
     h.wait_status("scan", |s| s.scans_accepted == 1)?;
 
-    assert_eq!(code(c.elevation(&vec![[0.0, 0.0]; 101]).expect_err("too big")), ErrorCode::BatchTooLarge);
-    assert_eq!(code(c.elevation(&[[f64::NAN, 0.0]]).expect_err("nan")), ErrorCode::InvalidArgument);
-    let zero_dir = Ray { origin_m: [0.0; 3], direction: [0.0; 3], max_range_m: 5.0 };
-    assert_eq!(code(c.ray(&[zero_dir]).expect_err("zero direction")), ErrorCode::InvalidArgument);
+    assert_eq!(
+        code(c.elevation(&vec![[0.0, 0.0]; 101]).expect_err("too big")),
+        ErrorCode::BatchTooLarge
+    );
+    assert_eq!(
+        code(c.elevation(&[[f64::NAN, 0.0]]).expect_err("nan")),
+        ErrorCode::InvalidArgument
+    );
+    let zero_dir = Ray {
+        origin_m: [0.0; 3],
+        direction: [0.0; 3],
+        max_range_m: 5.0,
+    };
+    assert_eq!(
+        code(c.ray(&[zero_dir]).expect_err("zero direction")),
+        ErrorCode::InvalidArgument
+    );
 
     let key = c.keys().query(QueryKind::Elevation);
     for enc in [Encoding::Bincode, Encoding::Json] {
-        let garbage = c.call_raw(&key, b"\xff\x00garbage".to_vec(), enc)?.expect_err("garbage");
+        let garbage = c
+            .call_raw(&key, b"\xff\x00garbage".to_vec(), enc)?
+            .expect_err("garbage");
         assert_eq!(garbage.code, ErrorCode::MalformedRequest, "{enc:?}");
-        let future = ElevationRequest { version: 999, points: vec![[0.0, 0.0]] };
-        let refused = c.call_raw(&key, codec::encode(enc, &future)?, enc)?.expect_err("version");
+        let future = ElevationRequest {
+            version: 999,
+            points: vec![[0.0, 0.0]],
+        };
+        let refused = c
+            .call_raw(&key, codec::encode(enc, &future)?, enc)?
+            .expect_err("version");
         assert_eq!(refused.code, ErrorCode::UnsupportedVersion, "{enc:?}");
     }
     // JSON in, JSON out: what a Python planner sends.

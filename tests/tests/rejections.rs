@@ -23,21 +23,93 @@ fn malformed_scans_are_counted_by_reason_and_the_map_is_untouched() -> anyhow::R
         .collect();
     let before = h.client.elevation(&probe)?;
 
-    let valid = ScanHeader { protocol_version: PROTOCOL_VERSION, publisher_id: 4, point_count: good.points.len() as u32, ..good.header };
+    let valid = ScanHeader {
+        protocol_version: PROTOCOL_VERSION,
+        publisher_id: 4,
+        point_count: good.points.len() as u32,
+        ..good.header
+    };
     let mut nan_range = good.points.clone();
     nan_range[100].range_m = f32::NAN;
     let too_many: Vec<ScanPoint> = good.points.iter().cycle().take(1600).copied().collect();
     let cases: Vec<(&str, ScanHeader, Vec<ScanPoint>)> = vec![
-        ("invalid_range", ScanHeader { sequence: 10, ..valid }, nan_range),
-        ("empty_scan", ScanHeader { sequence: 11, point_count: 0, ..valid }, Vec::new()),
-        ("unsupported_version", ScanHeader { sequence: 12, protocol_version: 77, ..valid }, good.points.clone()),
-        ("invalid_pose", ScanHeader { sequence: 13, px_m: f64::NAN, ..valid }, good.points.clone()),
-        ("non_unit_quaternion", ScanHeader { sequence: 14, qw: 3.0, ..valid }, good.points.clone()),
-        ("too_many_points", ScanHeader { sequence: 15, point_count: 1600, ..valid }, too_many),
-        ("truncated", ScanHeader { sequence: 16, point_count: good.points.len() as u32 + 5, ..valid }, good.points.clone()),
-        ("invalid_sensor_model", ScanHeader { sequence: 17, max_range_m: f64::INFINITY, ..valid }, good.points.clone()),
+        (
+            "invalid_range",
+            ScanHeader {
+                sequence: 10,
+                ..valid
+            },
+            nan_range,
+        ),
+        (
+            "empty_scan",
+            ScanHeader {
+                sequence: 11,
+                point_count: 0,
+                ..valid
+            },
+            Vec::new(),
+        ),
+        (
+            "unsupported_version",
+            ScanHeader {
+                sequence: 12,
+                protocol_version: 77,
+                ..valid
+            },
+            good.points.clone(),
+        ),
+        (
+            "invalid_pose",
+            ScanHeader {
+                sequence: 13,
+                px_m: f64::NAN,
+                ..valid
+            },
+            good.points.clone(),
+        ),
+        (
+            "non_unit_quaternion",
+            ScanHeader {
+                sequence: 14,
+                qw: 3.0,
+                ..valid
+            },
+            good.points.clone(),
+        ),
+        (
+            "too_many_points",
+            ScanHeader {
+                sequence: 15,
+                point_count: 1600,
+                ..valid
+            },
+            too_many,
+        ),
+        (
+            "truncated",
+            ScanHeader {
+                sequence: 16,
+                point_count: good.points.len() as u32 + 5,
+                ..valid
+            },
+            good.points.clone(),
+        ),
+        (
+            "invalid_sensor_model",
+            ScanHeader {
+                sequence: 17,
+                max_range_m: f64::INFINITY,
+                ..valid
+            },
+            good.points.clone(),
+        ),
         // Sequence 1 was accepted first: a replay is stale.
-        ("stale_sequence", ScanHeader { sequence: 1, ..valid }, good.points.clone()),
+        (
+            "stale_sequence",
+            ScanHeader { sequence: 1, ..valid },
+            good.points.clone(),
+        ),
     ];
     for (_, header, points) in &cases {
         publisher.publish_raw(*header, points)?;
@@ -47,7 +119,11 @@ fn malformed_scans_are_counted_by_reason_and_the_map_is_untouched() -> anyhow::R
     assert_eq!(status.scans_accepted, 1, "a malformed scan was accepted");
     assert_eq!(status.scans_rejected, n);
     for (reason, _, _) in &cases {
-        let count = status.rejections.iter().find(|r| r.reason == *reason).map(|r| r.count);
+        let count = status
+            .rejections
+            .iter()
+            .find(|r| r.reason == *reason)
+            .map(|r| r.count);
         assert_eq!(count, Some(1), "reason {reason}");
     }
     // The daemon still answers, with exactly the map it had.

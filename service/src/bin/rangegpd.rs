@@ -9,7 +9,10 @@ use std::path::PathBuf;
 use tracing_subscriber::EnvFilter;
 
 #[derive(Parser)]
-#[command(version, about = "Range-based Gaussian-process terrain maps from LiDAR scans, served over Zenoh")]
+#[command(
+    version,
+    about = "Range-based Gaussian-process terrain maps from LiDAR scans, served over Zenoh"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -31,7 +34,11 @@ enum Command {
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    let default_level = if matches!(cli.command, Command::Demo(_)) { "warn" } else { "info" };
+    let default_level = if matches!(cli.command, Command::Demo(_)) {
+        "warn"
+    } else {
+        "info"
+    };
     tracing_subscriber::fmt()
         .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default_level)))
         .with_writer(std::io::stderr)
@@ -42,8 +49,11 @@ fn main() -> Result<()> {
                 Some(path) => Config::load(&path)?,
                 None => Config::default(),
             };
-            let mut signals = signal_hook::iterator::Signals::new([signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM])
-                .context("installing signal handlers")?;
+            let mut signals = signal_hook::iterator::Signals::new([
+                signal_hook::consts::SIGINT,
+                signal_hook::consts::SIGTERM,
+            ])
+            .context("installing signal handlers")?;
             let daemon = Daemon::start(&config)?;
             if let Some(sig) = signals.forever().next() {
                 tracing::info!(signal = sig, "shutting down");

@@ -42,10 +42,7 @@ pub enum CholeskyError {
 
 /// Factors `k` = L Lᵀ (lower), adding jitter to the diagonal on failure per `policy`.
 /// Returns the factor and the jitter that was needed (0 when none).
-pub fn factor_with_jitter(
-    k: &Mat<f64>,
-    policy: JitterPolicy,
-) -> Result<(Llt<f64>, f64), CholeskyError> {
+pub fn factor_with_jitter(k: &Mat<f64>, policy: JitterPolicy) -> Result<(Llt<f64>, f64), CholeskyError> {
     let n = k.nrows();
     assert_eq!(n, k.ncols(), "covariance matrix must be square");
     let mut diag_sum = 0.0;

@@ -48,9 +48,8 @@ impl ExactGp {
         let log_det_half: f64 = (0..n).map(|i| factor[(i, i)].ln()).sum();
         solve_upper_triangular_in_place(factor.transpose(), rhs.as_mut(), Par::Seq);
         let alpha = (0..n).map(|i| rhs[(i, 0)]).collect();
-        let log_marginal_likelihood = -0.5 * quad
-            - log_det_half
-            - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
+        let log_marginal_likelihood =
+            -0.5 * quad - log_det_half - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
         Ok(Self {
             kernel,
             inputs,
@@ -115,8 +114,7 @@ mod tests {
         let k = Matern32::new(1.5, 0.8);
         let x0 = [0.0, 0.0, 1.0];
         let noise = 0.01;
-        let gp = ExactGp::fit(k, vec![x0], &[0.7], &[noise], JitterPolicy::default())
-            .expect("fit");
+        let gp = ExactGp::fit(k, vec![x0], &[0.7], &[noise], JitterPolicy::default()).expect("fit");
         let x = [0.3, 0.0, 1.0];
         let kx = k.at(0.3);
         let (m, v) = gp.mean_variance(&x);
@@ -142,9 +140,8 @@ mod tests {
             var: Vec<f64>,
             lml: f64,
         }
-        let f: Fixture =
-            serde_json::from_str(include_str!("../../tests/fixtures/gp_matern32.json"))
-                .expect("fixture parses");
+        let f: Fixture = serde_json::from_str(include_str!("../../tests/fixtures/gp_matern32.json"))
+            .expect("fixture parses");
         let gp = ExactGp::fit(
             Matern32::new(f.variance, f.length_scale),
             f.train_x.clone(),

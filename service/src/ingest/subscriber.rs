@@ -158,7 +158,12 @@ impl Intake {
                     // The slice length lives in the publisher's memory: read it once, bound it.
                     let slice_len = slice.len();
                     metrics.received.fetch_add(1, Ordering::Relaxed);
-                    let _span = info_span!("ingest", publisher = header.publisher_id, sequence = header.sequence).entered();
+                    let _span = info_span!(
+                        "ingest",
+                        publisher = header.publisher_id,
+                        sequence = header.sequence
+                    )
+                    .entered();
                     if let Err(reason) = check_header(&header, slice_len, &settings.limits) {
                         metrics.reject(reason);
                         debug!(reason = reason.as_str(), "scan rejected");
@@ -175,7 +180,11 @@ impl Intake {
             if last_cleanup.elapsed() >= settings.cleanup_interval {
                 let state = self.node.try_cleanup_dead_nodes();
                 if state.cleanups > 0 || state.failed_cleanups > 0 {
-                    info!(cleaned = state.cleanups, failed = state.failed_cleanups, "dead iceoryx2 nodes");
+                    info!(
+                        cleaned = state.cleanups,
+                        failed = state.failed_cleanups,
+                        "dead iceoryx2 nodes"
+                    );
                 }
                 last_cleanup = Instant::now();
             }

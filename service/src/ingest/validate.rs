@@ -89,11 +89,7 @@ const MAX_SENSOR_RANGE_M: f64 = 1000.0;
 const MAX_NOISE_PER_M: f64 = 0.1;
 
 /// Checks the header alone (before any point is copied).
-pub fn check_header(
-    h: &ScanHeader,
-    slice_len: usize,
-    limits: &ValidationLimits,
-) -> Result<(), RejectReason> {
+pub fn check_header(h: &ScanHeader, slice_len: usize, limits: &ValidationLimits) -> Result<(), RejectReason> {
     if h.protocol_version != PROTOCOL_VERSION {
         return Err(RejectReason::UnsupportedVersion);
     }
@@ -125,7 +121,11 @@ pub fn check_header(
 
 /// Validates a private copy of the header and its points and builds the fitter's input.
 /// Returns at or beyond the max range count as no-returns.
-pub fn validate(h: &ScanHeader, points: &[ScanPoint], limits: &ValidationLimits) -> Result<ScanInput, RejectReason> {
+pub fn validate(
+    h: &ScanHeader,
+    points: &[ScanPoint],
+    limits: &ValidationLimits,
+) -> Result<ScanInput, RejectReason> {
     check_header(h, points.len(), limits)?;
     let points = &points[..h.point_count as usize];
     let known_flags = FLAG_NO_RETURN | FLAG_RING_COLUMN_VALID;
@@ -245,15 +245,57 @@ pub(crate) mod tests {
         let check = |h: ScanHeader, p: &[ScanPoint], want: RejectReason| {
             assert_eq!(validate(&h, p, &limits()).err(), Some(want));
         };
-        check(ScanHeader { protocol_version: 99, ..good_header(10) }, &pts, RejectReason::UnsupportedVersion);
+        check(
+            ScanHeader {
+                protocol_version: 99,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::UnsupportedVersion,
+        );
         check(good_header(0), &pts, RejectReason::EmptyScan);
         check(good_header(101), &good_points(101), RejectReason::TooManyPoints);
         check(good_header(11), &pts, RejectReason::Truncated);
-        check(ScanHeader { px_m: f64::NAN, ..good_header(10) }, &pts, RejectReason::InvalidPose);
-        check(ScanHeader { qw: f64::INFINITY, ..good_header(10) }, &pts, RejectReason::InvalidPose);
-        check(ScanHeader { qw: 0.9, ..good_header(10) }, &pts, RejectReason::NonUnitQuaternion);
-        check(ScanHeader { max_range_m: 0.0, ..good_header(10) }, &pts, RejectReason::InvalidSensorModel);
-        check(ScanHeader { range_noise_per_m: -1.0, ..good_header(10) }, &pts, RejectReason::InvalidSensorModel);
+        check(
+            ScanHeader {
+                px_m: f64::NAN,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::InvalidPose,
+        );
+        check(
+            ScanHeader {
+                qw: f64::INFINITY,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::InvalidPose,
+        );
+        check(
+            ScanHeader {
+                qw: 0.9,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::NonUnitQuaternion,
+        );
+        check(
+            ScanHeader {
+                max_range_m: 0.0,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::InvalidSensorModel,
+        );
+        check(
+            ScanHeader {
+                range_noise_per_m: -1.0,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::InvalidSensorModel,
+        );
         let mut bad = pts.clone();
         bad[2].range_m = f32::NAN;
         check(good_header(10), &bad, RejectReason::InvalidRange);
@@ -265,7 +307,13 @@ pub(crate) mod tests {
         let mut bad = pts.clone();
         bad[0].flags = 0x80;
         check(good_header(10), &bad, RejectReason::InvalidFlags);
-        let none: Vec<ScanPoint> = pts.iter().map(|p| ScanPoint { flags: FLAG_NO_RETURN, ..*p }).collect();
+        let none: Vec<ScanPoint> = pts
+            .iter()
+            .map(|p| ScanPoint {
+                flags: FLAG_NO_RETURN,
+                ..*p
+            })
+            .collect();
         check(good_header(10), &none, RejectReason::NoReturns);
     }
 

@@ -146,11 +146,7 @@ impl LocalRangeMap {
             .map(|r| (scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2)
             .collect();
         let gp = ExactGp::fit(params.kernel, inputs, &targets, &noise, params.jitter)?;
-        let angles: Vec<(f64, f64)> = scan
-            .rays
-            .iter()
-            .map(|r| (r.inclination, r.azimuth))
-            .collect();
+        let angles: Vec<(f64, f64)> = scan.rays.iter().map(|r| (r.inclination, r.azimuth)).collect();
         Ok(Self {
             publisher_id: scan.publisher_id,
             sequence: scan.sequence,
@@ -194,7 +190,10 @@ impl LocalRangeMap {
 
     /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
     fn look_at(&self, p: &Vector3<f64>) -> Option<(f64, f64, f64)> {
-        let q = self.pose.rotation.inverse_transform_vector(&(p - self.sensor_position()));
+        let q = self
+            .pose
+            .rotation
+            .inverse_transform_vector(&(p - self.sensor_position()));
         let dist = q.norm();
         if dist <= 1e-9 || dist > self.max_range {
             return None;

@@ -71,10 +71,11 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         .take(CANDIDATES)
         .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m))
         .collect();
-    let hit = answers
-        .iter()
-        .filter(|a| a.range.is_some())
-        .min_by(|a, b| a.range_var.unwrap_or(f64::INFINITY).total_cmp(&b.range_var.unwrap_or(f64::INFINITY)));
+    let hit = answers.iter().filter(|a| a.range.is_some()).min_by(|a, b| {
+        a.range_var
+            .unwrap_or(f64::INFINITY)
+            .total_cmp(&b.range_var.unwrap_or(f64::INFINITY))
+    });
     let best = hit.or_else(|| {
         answers
             .iter()

@@ -29,11 +29,19 @@ pub struct Failure {
 }
 
 fn fail<T>(code: ErrorCode, message: impl Into<String>) -> Result<T, Failure> {
-    Err(Failure { code, message: message.into() })
+    Err(Failure {
+        code,
+        message: message.into(),
+    })
 }
 
 /// Answers one request payload; the reply is in the request's encoding.
-pub fn answer(endpoint: Endpoint, encoding: Encoding, payload: &[u8], state: &ServerState) -> Result<Vec<u8>, Failure> {
+pub fn answer(
+    endpoint: Endpoint,
+    encoding: Encoding,
+    payload: &[u8],
+    state: &ServerState,
+) -> Result<Vec<u8>, Failure> {
     let _span = info_span!("query", endpoint = ?endpoint, bytes = payload.len()).entered();
     match endpoint {
         Endpoint::Status => {
@@ -46,15 +54,31 @@ pub fn answer(endpoint: Endpoint, encoding: Encoding, payload: &[u8], state: &Se
             let req: ElevationRequest = decode(encoding, payload)?;
             check_points(&req.points, state)?;
             let snap = snapshot(state)?;
-            let items = query::par_map(&req.points, state.batch_threads, |p| query::elevation(&snap, p[0], p[1]));
-            encode(encoding, &ElevationReply { version: PROTOCOL_VERSION, items })
+            let items = query::par_map(&req.points, state.batch_threads, |p| {
+                query::elevation(&snap, p[0], p[1])
+            });
+            encode(
+                encoding,
+                &ElevationReply {
+                    version: PROTOCOL_VERSION,
+                    items,
+                },
+            )
         }
         Endpoint::Query(QueryKind::Variance) => {
             let req: VarianceRequest = decode(encoding, payload)?;
             check_points(&req.points, state)?;
             let snap = snapshot(state)?;
-            let items = query::par_map(&req.points, state.batch_threads, |p| query::variance(&snap, p[0], p[1]));
-            encode(encoding, &VarianceReply { version: PROTOCOL_VERSION, items })
+            let items = query::par_map(&req.points, state.batch_threads, |p| {
+                query::variance(&snap, p[0], p[1])
+            });
+            encode(
+                encoding,
+                &VarianceReply {
+                    version: PROTOCOL_VERSION,
+                    items,
+                },
+            )
         }
         Endpoint::Query(QueryKind::Ray) => {
             let req: RayRequest = decode(encoding, payload)?;
@@ -64,7 +88,13 @@ pub fn answer(endpoint: Endpoint, encoding: Encoding, payload: &[u8], state: &Se
             }
             let snap = snapshot(state)?;
             let items = query::par_map(&req.rays, state.batch_threads, |r| query::ray(&snap, r));
-            encode(encoding, &RayReply { version: PROTOCOL_VERSION, items })
+            encode(
+                encoding,
+                &RayReply {
+                    version: PROTOCOL_VERSION,
+                    items,
+                },
+            )
         }
     }
 }
@@ -74,15 +104,23 @@ fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, 
     if version.is_some_and(|v| v != PROTOCOL_VERSION) {
         return fail(
             ErrorCode::UnsupportedVersion,
-            format!("protocol version {} not supported (daemon speaks {PROTOCOL_VERSION})", version.unwrap_or(0)),
+            format!(
+                "protocol version {} not supported (daemon speaks {PROTOCOL_VERSION})",
+                version.unwrap_or(0)
+            ),
         );
     }
-    codec::decode(encoding, payload)
-        .or_else(|e| fail(ErrorCode::MalformedRequest, format!("cannot decode the request ({encoding:?}): {e}")))
+    codec::decode(encoding, payload).or_else(|e| {
+        fail(
+            ErrorCode::MalformedRequest,
+            format!("cannot decode the request ({encoding:?}): {e}"),
+        )
+    })
 }
 
 fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failure> {
-    codec::encode(encoding, value).or_else(|e| fail(ErrorCode::Internal, format!("cannot encode the reply: {e}")))
+    codec::encode(encoding, value)
+        .or_else(|e| fail(ErrorCode::Internal, format!("cannot encode the reply: {e}")))
 }
 
 fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
@@ -95,7 +133,10 @@ fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapsho
 
 fn check_batch(len: usize, state: &ServerState) -> Result<(), Failure> {
     if len > state.max_batch {
-        return fail(ErrorCode::BatchTooLarge, format!("batch of {len} exceeds the limit of {}", state.max_batch));
+        return fail(
+            ErrorCode::BatchTooLarge,
+            format!("batch of {len} exceeds the limit of {}", state.max_batch),
+        );
     }
     Ok(())
 }
@@ -112,9 +153,13 @@ fn check_ray(i: usize, r: &Ray, state: &ServerState) -> Result<(), Failure> {
     let finite = r.origin_m.iter().chain(&r.direction).all(|v| v.is_finite());
     let norm = r.direction.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !finite || norm < 1e-9 {
-        return fail(ErrorCode::InvalidArgument, format!("ray {i}: origin and direction must be finite, direction non-zero"));
+        return fail(
+            ErrorCode::InvalidArgument,
+            format!("ray {i}: origin and direction must be finite, direction non-zero"),
+        );
     }
-    if !(r.max_range_m > 0.0 && r.max_range_m <= state.max_ray_range_m) {
+    let in_range = r.max_range_m.is_finite() && r.max_range_m > 0.0 && r.max_range_m <= state.max_ray_range_m;
+    if !in_range {
         return fail(
             ErrorCode::InvalidArgument,
             format!("ray {i}: max_range_m must be in (0, {}]", state.max_ray_range_m),

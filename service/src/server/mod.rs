@@ -69,7 +69,9 @@ pub struct QueryServer {
 
 impl std::fmt::Debug for QueryServer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("QueryServer").field("workers", &self.workers.len()).finish()
+        f.debug_struct("QueryServer")
+            .field("workers", &self.workers.len())
+            .finish()
     }
 }
 
@@ -108,12 +110,21 @@ impl QueryServer {
                 .callback(move |query| match tx.try_send((endpoint, query)) {
                     Ok(()) => {}
                     Err(TrySendError::Full((_, query))) | Err(TrySendError::Disconnected((_, query))) => {
-                        metrics.queries_failed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        reply_error(&query, ErrorCode::Overloaded, "query queue full, retry later".into());
+                        metrics
+                            .queries_failed
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        reply_error(
+                            &query,
+                            ErrorCode::Overloaded,
+                            "query queue full, retry later".into(),
+                        );
                     }
                 })
                 .wait()
-                .map_err(|e| ServerError::Declare { what: key.clone(), reason: e.to_string() })?;
+                .map_err(|e| ServerError::Declare {
+                    what: key.clone(),
+                    reason: e.to_string(),
+                })?;
             queryables.push(q);
         }
         let alive = state.keys.alive();
@@ -121,9 +132,17 @@ impl QueryServer {
             .liveliness()
             .declare_token(&alive)
             .wait()
-            .map_err(|e| ServerError::Declare { what: alive.clone(), reason: e.to_string() })?;
+            .map_err(|e| ServerError::Declare {
+                what: alive.clone(),
+                reason: e.to_string(),
+            })?;
         info!(map = state.keys.map_id(), "queryables declared");
-        Ok(Self { queryables, token: Some(token), sender: Some(sender), workers: handles })
+        Ok(Self {
+            queryables,
+            token: Some(token),
+            sender: Some(sender),
+            workers: handles,
+        })
     }
 }
 
@@ -150,16 +169,29 @@ fn worker(receiver: &Mutex<Receiver<Job>>, state: &ServerState) {
             .encoding()
             .map(|e| Encoding::from_mime(&e.to_string()))
             .unwrap_or_default();
-        let payload = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+        let payload = query
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
         match handler::answer(endpoint, encoding, &payload, state) {
             Ok(bytes) => {
-                state.metrics.queries_ok.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if let Err(e) = query.reply(query.key_expr().clone(), bytes).encoding(encoding.mime()).wait() {
+                state
+                    .metrics
+                    .queries_ok
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if let Err(e) = query
+                    .reply(query.key_expr().clone(), bytes)
+                    .encoding(encoding.mime())
+                    .wait()
+                {
                     warn!(error = %e, "reply failed");
                 }
             }
             Err(f) => {
-                state.metrics.queries_failed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                state
+                    .metrics
+                    .queries_failed
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 reply_error(&query, f.code, f.message);
             }
         }
@@ -171,7 +203,11 @@ fn reply_error(query: &Query, code: ErrorCode, message: String) {
         .encoding()
         .map(|e| Encoding::from_mime(&e.to_string()))
         .unwrap_or_default();
-    let body = ErrorReply { version: PROTOCOL_VERSION, code, message };
+    let body = ErrorReply {
+        version: PROTOCOL_VERSION,
+        code,
+        message,
+    };
     match codec::encode(encoding, &body) {
         Ok(bytes) => {
             if let Err(e) = query.reply_err(bytes).encoding(encoding.mime()).wait() {

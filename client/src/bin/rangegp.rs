@@ -1,0 +1,170 @@
+//! `rangegp`: query a rangegp daemon and drive it with simulated scans.
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use rangegp_client::scangen::{now_ns, ScanGenerator};
+use rangegp_client::{Client, ScanPublisher};
+use rangegp_proto::msg::Ray;
+use rangegp_sim::ScannerPreset;
+use std::time::{Duration, Instant};
+
+#[derive(Parser)]
+#[command(
+    version,
+    about = "Query a rangegp daemon over Zenoh; publish simulated scans over iceoryx2"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Args)]
+struct Connection {
+    /// Daemon endpoint.
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    connect: String,
+    /// Map id.
+    #[arg(long, default_value = "default")]
+    map_id: String,
+    /// Per-query timeout, seconds.
+    #[arg(long, default_value_t = 10.0)]
+    timeout_s: f64,
+}
+
+impl Connection {
+    fn open(&self) -> Result<Client> {
+        let timeout = Duration::from_secs_f64(self.timeout_s);
+        let client = Client::builder(&self.map_id)
+            .connect([self.connect.clone()])
+            .timeout(timeout)
+            .open()?;
+        client
+            .wait_for_daemon(timeout)
+            .with_context(|| format!("no daemon for map {:?} at {}", self.map_id, self.connect))?;
+        Ok(client)
+    }
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print the daemon's counters as JSON.
+    Status(Connection),
+    /// Run one query and print the reply as JSON.
+    Query {
+        #[command(flatten)]
+        connection: Connection,
+        #[command(subcommand)]
+        kind: QueryCommand,
+    },
+    /// Publish simulated scans along a path at a rate (the scan generator).
+    Scangen {
+        /// iceoryx2 scan service name.
+        #[arg(long, default_value = "rangegp/default/scans")]
+        service: String,
+        /// Sensor preset: seed000, vlp16 or os1-64.
+        #[arg(long, default_value = "seed000")]
+        preset: String,
+        /// Scans to publish.
+        #[arg(long, default_value_t = 50)]
+        count: usize,
+        /// Scans per second.
+        #[arg(long, default_value_t = 10.0)]
+        rate_hz: f64,
+        /// World seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Metres between scans.
+        #[arg(long, default_value_t = 1.0)]
+        step_m: f64,
+        /// Publisher id in the scan header.
+        #[arg(long, default_value_t = 1)]
+        publisher_id: u64,
+    },
+}
+
+#[derive(Subcommand)]
+enum QueryCommand {
+    /// Elevation at X Y [X Y ...].
+    Elevation {
+        /// Coordinates in pairs, map frame, metres.
+        #[arg(num_args = 2.., allow_negative_numbers = true, required = true)]
+        coords: Vec<f64>,
+    },
+    /// Elevation variance at X Y [X Y ...].
+    Variance {
+        /// Coordinates in pairs, map frame, metres.
+        #[arg(num_args = 2.., allow_negative_numbers = true, required = true)]
+        coords: Vec<f64>,
+    },
+    /// Cast one ray: origin OX OY OZ, direction DX DY DZ.
+    Ray {
+        /// ox oy oz dx dy dz.
+        #[arg(num_args = 6, allow_negative_numbers = true, required = true)]
+        values: Vec<f64>,
+        /// Max range, metres.
+        #[arg(long, default_value_t = 20.0)]
+        max_range_m: f64,
+    },
+}
+
+fn pairs(coords: &[f64]) -> Result<Vec<[f64; 2]>> {
+    anyhow::ensure!(coords.len().is_multiple_of(2), "coordinates come in (x, y) pairs");
+    Ok(coords.chunks(2).map(|c| [c[0], c[1]]).collect())
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Status(c) => println!("{}", serde_json::to_string_pretty(&c.open()?.status()?)?),
+        Command::Query { connection, kind } => {
+            let client = connection.open()?;
+            let json = match kind {
+                QueryCommand::Elevation { coords } => {
+                    serde_json::to_string_pretty(&client.elevation(&pairs(&coords)?)?)?
+                }
+                QueryCommand::Variance { coords } => {
+                    serde_json::to_string_pretty(&client.variance(&pairs(&coords)?)?)?
+                }
+                QueryCommand::Ray { values, max_range_m } => {
+                    let ray = Ray {
+                        origin_m: [values[0], values[1], values[2]],
+                        direction: [values[3], values[4], values[5]],
+                        max_range_m,
+                    };
+                    serde_json::to_string_pretty(&client.ray(&[ray])?)?
+                }
+            };
+            println!("{json}");
+        }
+        Command::Scangen {
+            service,
+            preset,
+            count,
+            rate_hz,
+            seed,
+            step_m,
+            publisher_id,
+        } => {
+            let preset = ScannerPreset::by_name(&preset)
+                .with_context(|| format!("unknown preset {preset:?}: seed000, vlp16, os1-64"))?;
+            anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
+            let rays = preset.ray_count();
+            let mut world = ScanGenerator::new(seed, 100.0, preset, count, step_m);
+            let mut publisher = ScanPublisher::new(&service, publisher_id, rays)?;
+            let period = Duration::from_secs_f64(1.0 / rate_hz);
+            for i in 0..count {
+                let tick = Instant::now();
+                let scan = world.scan(i, now_ns());
+                let seq = publisher.publish(scan.header, &scan.points)?;
+                eprintln!("scan {}/{count}: sequence {seq}, {rays} rays", i + 1);
+                std::thread::sleep(period.saturating_sub(tick.elapsed()));
+            }
+        }
+    }
+    Ok(())
+}
