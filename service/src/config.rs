@@ -1,6 +1,6 @@
 //! Daemon configuration: TOML with defaults for every field and unknown fields refused.
 
-use crate::gp::{JitterPolicy, Matern32};
+use crate::gp::{JitterPolicy, Kernel, KernelFamily};
 use crate::map::local::{MapParams, PriorKind};
 use rangegp_proto::keys::MapKeys;
 use serde::{Deserialize, Serialize};
@@ -64,9 +64,12 @@ pub struct IngestConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct GpConfig {
-    /// Matérn-3/2 kernel variance σ² (seed 000 Table I: 2.302).
+    /// Kernel family: `{ family = "matern32" }` (default), `matern52`, `squared_exponential`,
+    /// `rational_quadratic` (with `alpha`), `arc_sine`.
+    pub kernel: KernelFamily,
+    /// Kernel variance σ² (seed 000 Table I: 2.302).
     pub kernel_variance: f64,
-    /// Matérn-3/2 length scale on the range sphere, metres of chord (seed 000 Table I: 1.206).
+    /// Length scale on the range sphere, metres of chord (seed 000 Table I: 1.206).
     pub length_scale: f64,
     /// Radius of the range sphere, metres (seed 000: R_max = 10).
     pub sphere_radius_m: f64,
@@ -156,6 +159,7 @@ impl Default for IngestConfig {
 impl Default for GpConfig {
     fn default() -> Self {
         Self {
+            kernel: KernelFamily::Matern32,
             kernel_variance: 2.302,
             length_scale: 1.206,
             sphere_radius_m: 10.0,
@@ -264,7 +268,7 @@ impl Config {
     pub fn map_params(&self) -> MapParams {
         let g = &self.gp;
         MapParams {
-            kernel: Matern32::new(g.kernel_variance, g.length_scale),
+            kernel: Kernel::new(g.kernel, g.kernel_variance, g.length_scale),
             sphere_radius_m: g.sphere_radius_m,
             nugget_m2: g.nugget_m2,
             max_training_rays: g.max_training_rays,

@@ -87,7 +87,7 @@ impl Daemon {
             batch_threads: config.query.threads,
             window_capacity: config.window.capacity,
             hyperparameters: HyperparametersInfo {
-                kernel: "matern32".into(),
+                kernel: format!("{:?}", params.kernel.family),
                 variance: params.kernel.variance,
                 length_scale: params.kernel.length_scale,
                 nugget: params.nugget_m2,

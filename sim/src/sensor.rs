@@ -3,7 +3,6 @@
 use crate::terrain::Heightmap;
 use nalgebra::{Isometry3, Vector3};
 use rand::Rng;
-use rand_distr_normal::standard_normal;
 
 /// A spinning LiDAR: ring inclinations × column azimuths, with its range limit and noise.
 #[derive(Debug, Clone, PartialEq)]
@@ -158,15 +157,11 @@ pub fn simulate_scan<R: Rng>(
     rays
 }
 
-mod rand_distr_normal {
-    use rand::Rng;
-
-    /// One standard-normal draw (Box–Muller; two uniforms in, one normal out).
-    pub fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
-        let u1: f64 = 1.0 - rng.random::<f64>();
-        let u2: f64 = rng.random();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
+/// One standard-normal draw (Box–Muller; two uniforms in, one normal out).
+pub fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
+    let u1: f64 = 1.0 - rng.random::<f64>();
+    let u2: f64 = rng.random();
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 #[cfg(test)]

@@ -1,14 +1,14 @@
 //! An exact GP regression: K + Σ = L Lᵀ, α = (K + Σ)⁻¹ y; posterior mean and latent variance.
 
 use super::cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
-use super::kernel::Matern32;
+use super::kernel::Kernel;
 use faer::linalg::triangular_solve::{solve_lower_triangular_in_place, solve_upper_triangular_in_place};
 use faer::{Mat, Par};
 
 /// A fitted exact GP over points in R³ (the range sphere), targets already de-meaned.
 #[derive(Debug, Clone)]
 pub struct ExactGp {
-    kernel: Matern32,
+    kernel: Kernel,
     inputs: Vec<[f64; 3]>,
     factor: Mat<f64>,
     alpha: Vec<f64>,
@@ -22,7 +22,7 @@ impl ExactGp {
     ///
     /// Panics if the three slices differ in length or are empty (caller's misuse).
     pub fn fit(
-        kernel: Matern32,
+        kernel: Kernel,
         inputs: Vec<[f64; 3]>,
         targets: &[f64],
         noise_var: &[f64],
@@ -71,7 +71,7 @@ impl ExactGp {
     }
 
     /// The kernel in use.
-    pub fn kernel(&self) -> &Matern32 {
+    pub fn kernel(&self) -> &Kernel {
         &self.kernel
     }
 
@@ -101,7 +101,7 @@ impl ExactGp {
         let mean = (0..n).map(|i| kstar[(i, 0)] * self.alpha[i]).sum();
         solve_lower_triangular_in_place(self.factor.as_ref(), kstar.as_mut(), Par::Seq);
         let explained: f64 = (0..n).map(|i| kstar[(i, 0)] * kstar[(i, 0)]).sum();
-        (mean, (self.kernel.at(0.0) - explained).max(0.0))
+        (mean, (self.kernel.diagonal(x) - explained).max(0.0))
     }
 }
 
@@ -111,12 +111,12 @@ mod tests {
 
     #[test]
     fn one_point_gp_matches_the_closed_form() {
-        let k = Matern32::new(1.5, 0.8);
+        let k = Kernel::matern32(1.5, 0.8);
         let x0 = [0.0, 0.0, 1.0];
         let noise = 0.01;
         let gp = ExactGp::fit(k, vec![x0], &[0.7], &[noise], JitterPolicy::default()).expect("fit");
         let x = [0.3, 0.0, 1.0];
-        let kx = k.at(0.3);
+        let kx = k.between(&x0, &[0.3, 0.0, 1.0]);
         let (m, v) = gp.mean_variance(&x);
         assert!((m - kx / (1.5 + noise) * 0.7).abs() < 1e-14);
         assert!((v - (1.5 - kx * kx / (1.5 + noise))).abs() < 1e-14);
@@ -143,7 +143,7 @@ mod tests {
         let f: Fixture = serde_json::from_str(include_str!("../../tests/fixtures/gp_matern32.json"))
             .expect("fixture parses");
         let gp = ExactGp::fit(
-            Matern32::new(f.variance, f.length_scale),
+            Kernel::matern32(f.variance, f.length_scale),
             f.train_x.clone(),
             &f.train_y,
             &f.noise_var,

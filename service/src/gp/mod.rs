@@ -5,9 +5,11 @@
 
 pub mod cholesky;
 pub mod exact;
+pub mod hyper;
 pub mod kernel;
+pub mod likelihood;
 pub mod sphere;
 
 pub use cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
 pub use exact::ExactGp;
-pub use kernel::Matern32;
+pub use kernel::{Kernel, KernelFamily};

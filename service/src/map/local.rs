@@ -2,7 +2,7 @@
 
 use super::fov::FieldOfView;
 use super::prior::Prior;
-use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Matern32};
+use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Kernel};
 use nalgebra::{Isometry3, Vector3};
 use thiserror::Error;
 
@@ -55,7 +55,7 @@ pub enum PriorKind {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapParams {
     /// Kernel on the range sphere.
-    pub kernel: Matern32,
+    pub kernel: Kernel,
     /// Radius of the range sphere the kernel distances are measured on, metres.
     pub sphere_radius_m: f64,
     /// Noise variance added to every training ray on top of the sensor model, m².
@@ -370,7 +370,7 @@ mod tests {
 
     pub(crate) fn params() -> MapParams {
         MapParams {
-            kernel: Matern32::new(2.30, 1.21),
+            kernel: Kernel::matern32(2.30, 1.21),
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
             max_training_rays: 2000,

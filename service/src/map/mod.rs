@@ -4,6 +4,7 @@ pub mod fov;
 pub mod local;
 pub mod prior;
 pub mod query;
+pub mod tiles;
 pub mod window;
 
 pub use local::{FitError, LocalRangeMap, ScanInput};

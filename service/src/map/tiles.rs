@@ -1,0 +1,263 @@
+//! Tiled local experts for whole scans (seed 004 §III-B, seed 002 §III-E): the observed angle
+//! box is cut into a grid of tiles, each tile an exact GP on the rays of its box grown by an
+//! overlap margin, fitted in parallel. Predictions blend the experts that cover an angle with a
+//! partition of unity whose weights fall to zero at each tile's outer edge, so the blended mean
+//! and variance are continuous across tile borders (no seams by construction).
+
+use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Kernel};
+use rayon::prelude::*;
+use std::f64::consts::TAU;
+
+/// How a scan is cut into experts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tiling {
+    /// Training rays per tile at most (an even stride over the tile's rays beyond it).
+    pub max_rays_per_tile: usize,
+    /// Overlap margin on each side, as a fraction of the tile's core size.
+    pub overlap: f64,
+}
+
+impl Default for Tiling {
+    fn default() -> Self {
+        Self {
+            max_rays_per_tile: 256,
+            overlap: 0.25,
+        }
+    }
+}
+
+/// One training ray: direction and de-meaned target with its noise variance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrainingRay {
+    /// Inclination, radians.
+    pub inclination: f64,
+    /// Azimuth, radians.
+    pub azimuth: f64,
+    /// Range minus the prior mean, metres.
+    pub residual: f64,
+    /// Noise variance, m².
+    pub noise_var: f64,
+}
+
+/// The grid of tiles over an inclination interval × azimuth arc.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Grid {
+    theta0: f64,
+    dtheta: f64,
+    rows: usize,
+    phi0: f64,
+    dphi: f64,
+    cols: usize,
+    full_turn: bool,
+    margin_theta: f64,
+    margin_phi: f64,
+}
+
+impl Grid {
+    /// Azimuth relative to the arc start, in [0, 2π).
+    fn rel_phi(&self, phi: f64) -> f64 {
+        (phi - self.phi0).rem_euclid(TAU)
+    }
+
+    /// Weight of tile (r, c) at (θ, relative φ): product of ramps over the overlap margins.
+    fn weight(&self, r: usize, c: usize, theta: f64, rel: f64) -> f64 {
+        let wt = ramp(
+            theta,
+            self.theta0 + r as f64 * self.dtheta,
+            self.dtheta,
+            self.margin_theta,
+            r == 0,
+            r + 1 == self.rows,
+        );
+        if wt == 0.0 {
+            return 0.0;
+        }
+        let lo = c as f64 * self.dphi;
+        let rel = if self.full_turn {
+            let centre = lo + self.dphi / 2.0;
+            centre + (rel - centre + TAU / 2.0).rem_euclid(TAU) - TAU / 2.0
+        } else {
+            rel
+        };
+        let open_ends = !self.full_turn;
+        wt * ramp(
+            rel,
+            lo,
+            self.dphi,
+            self.margin_phi,
+            open_ends && c == 0,
+            open_ends && c + 1 == self.cols,
+        )
+    }
+
+    /// Tiles whose extended box may contain (θ, relative φ).
+    fn candidates(&self, theta: f64, rel: f64) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let r = ((theta - self.theta0) / self.dtheta).floor() as i64;
+        let c = (rel / self.dphi).floor() as i64;
+        let (rows, cols) = (self.rows as i64, self.cols as i64);
+        (r - 1..=r + 1).flat_map(move |rr| {
+            (c - 1..=c + 1).filter_map(move |cc| {
+                let cc = if self.full_turn { cc.rem_euclid(cols) } else { cc };
+                (rr >= 0 && rr < rows && cc >= 0 && cc < cols).then_some((rr as usize, cc as usize))
+            })
+        })
+    }
+}
+
+/// 1 inside [lo + m, lo + w − m], falling smoothly to 0 at lo − m and lo + w + m; an `open` end
+/// stays at 1 beyond the grid so the outermost tiles cover the whole observed box.
+fn ramp(x: f64, lo: f64, w: f64, m: f64, open_low: bool, open_high: bool) -> f64 {
+    let up = if open_low {
+        1.0
+    } else {
+        smoothstep((x - (lo - m)) / (2.0 * m))
+    };
+    let down = if open_high {
+        1.0
+    } else {
+        smoothstep(((lo + w + m) - x) / (2.0 * m))
+    };
+    up * down
+}
+
+fn smoothstep(t: f64) -> f64 {
+    let t = t.clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// A scan's range residual modelled by a grid of exact-GP experts.
+#[derive(Debug, Clone)]
+pub struct TiledGp {
+    grid: Grid,
+    experts: Vec<Option<ExactGp>>,
+    sphere_radius: f64,
+}
+
+impl TiledGp {
+    /// Fits the experts of `rays` (non-empty) in parallel on the rayon pool.
+    pub fn fit(
+        rays: &[TrainingRay],
+        kernel: Kernel,
+        sphere_radius: f64,
+        tiling: Tiling,
+        jitter: JitterPolicy,
+    ) -> Result<Self, CholeskyError> {
+        assert!(!rays.is_empty(), "no training rays");
+        let (mut tmin, mut tmax) = (f64::INFINITY, f64::NEG_INFINITY);
+        let mut az: Vec<f64> = Vec::with_capacity(rays.len());
+        for r in rays {
+            tmin = tmin.min(r.inclination);
+            tmax = tmax.max(r.inclination);
+            az.push(r.azimuth.rem_euclid(TAU));
+        }
+        az.sort_by(f64::total_cmp);
+        let (mut gap, mut start) = (az[0] + TAU - az[az.len() - 1], az[0]);
+        for w in az.windows(2) {
+            if w[1] - w[0] > gap {
+                gap = w[1] - w[0];
+                start = w[1];
+            }
+        }
+        let width = (TAU - gap).max(1e-6);
+        let full_turn = gap < 5f64.to_radians();
+        let arc = if full_turn { TAU } else { width };
+        let theta_span = (tmax - tmin).max(1e-6);
+        let core = tiling.max_rays_per_tile as f64 / (1.0 + 2.0 * tiling.overlap).powi(2);
+        let tiles = (rays.len() as f64 / core).ceil().max(1.0);
+        let aspect = theta_span / (arc * ((tmin + tmax) / 2.0).sin().max(0.1));
+        let rows = ((tiles * aspect).sqrt().round() as usize).clamp(1, tiles as usize);
+        let cols = ((tiles / rows as f64).ceil() as usize).max(1);
+        let grid = Grid {
+            theta0: tmin,
+            dtheta: theta_span / rows as f64 * (1.0 + 1e-9),
+            rows,
+            phi0: if full_turn { 0.0 } else { start },
+            dphi: arc / cols as f64 * (1.0 + 1e-9),
+            cols,
+            full_turn,
+            margin_theta: tiling.overlap * theta_span / rows as f64,
+            margin_phi: tiling.overlap * arc / cols as f64,
+        };
+        let mut members: Vec<Vec<usize>> = vec![Vec::new(); rows * cols];
+        for (i, r) in rays.iter().enumerate() {
+            let rel = grid.rel_phi(r.azimuth);
+            for (tr, tc) in grid.candidates(r.inclination, rel) {
+                if grid.weight(tr, tc, r.inclination, rel) > 0.0 {
+                    members[tr * cols + tc].push(i);
+                }
+            }
+        }
+        let experts = members
+            .par_iter()
+            .map(|idx| {
+                if idx.is_empty() {
+                    return Ok(None);
+                }
+                let stride = idx.len().div_ceil(tiling.max_rays_per_tile.max(1));
+                let chosen: Vec<&TrainingRay> = idx.iter().step_by(stride).map(|&i| &rays[i]).collect();
+                let inputs = chosen
+                    .iter()
+                    .map(|r| sphere::to_sphere(r.inclination, r.azimuth, sphere_radius))
+                    .collect();
+                let targets: Vec<f64> = chosen.iter().map(|r| r.residual).collect();
+                let noise: Vec<f64> = chosen.iter().map(|r| r.noise_var).collect();
+                ExactGp::fit(kernel, inputs, &targets, &noise, jitter).map(Some)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self {
+            grid,
+            experts,
+            sphere_radius,
+        })
+    }
+
+    /// Experts (tiles with rays).
+    pub fn tiles(&self) -> usize {
+        self.experts.iter().flatten().count()
+    }
+
+    /// Training rays over all experts (overlaps counted in each).
+    pub fn training_rays(&self) -> usize {
+        self.experts.iter().flatten().map(ExactGp::len).sum()
+    }
+
+    /// Blended residual mean at (θ, φ) (O(n) per covering expert).
+    pub fn mean(&self, inclination: f64, azimuth: f64) -> f64 {
+        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
+    }
+
+    /// Blended residual mean and variance (mixture of the covering experts).
+    pub fn mean_variance(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
+        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        self.blend(inclination, azimuth, |gp| gp.mean_variance(&x))
+    }
+
+    fn blend(&self, inclination: f64, azimuth: f64, f: impl Fn(&ExactGp) -> (f64, f64)) -> (f64, f64) {
+        let rel = self.grid.rel_phi(azimuth);
+        let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
+        let mut fallback = None;
+        for (r, c) in self.grid.candidates(inclination, rel) {
+            let Some(gp) = &self.experts[r * self.grid.cols + c] else {
+                continue;
+            };
+            let w = self.grid.weight(r, c, inclination, rel);
+            fallback.get_or_insert(gp);
+            if w > 0.0 {
+                let (m, v) = f(gp);
+                wsum += w;
+                m1 += w * m;
+                m2 += w * (v + m * m);
+            }
+        }
+        if wsum > 0.0 {
+            let mean = m1 / wsum;
+            return (mean, (m2 / wsum - mean * mean).max(0.0));
+        }
+        // Outside every tile's support (beyond the observed box): the nearest expert answers.
+        match fallback.or_else(|| self.experts.iter().flatten().next()) {
+            Some(gp) => f(gp),
+            None => (0.0, 0.0),
+        }
+    }
+}
