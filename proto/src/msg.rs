@@ -165,6 +165,10 @@ pub struct StatusReply {
     pub rejections: Vec<RejectionCount>,
     /// Valid scans dropped because fitting fell behind (newest wins).
     pub scans_skipped: u64,
+    /// Online hyperparameter updates applied since start.
+    pub hyperparameter_updates: u64,
+    /// Local experts whose Cholesky factorisation needed diagonal jitter since start.
+    pub jittered_tiles: u64,
     /// Missing sequence numbers observed, summed over publishers.
     pub sequence_gaps: u64,
     /// Local maps in the window now.

@@ -1,7 +1,9 @@
 //! Daemon configuration: TOML with defaults for every field and unknown fields refused.
 
+use crate::gp::hyper::{HyperBounds, OnlineHyperparameters};
 use crate::gp::{JitterPolicy, Kernel, KernelFamily};
 use crate::map::local::{MapParams, PriorKind};
+use crate::map::tiles::Tiling;
 use rangegp_proto::keys::MapKeys;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -77,12 +79,51 @@ pub struct GpConfig {
     pub nugget_m2: f64,
     /// Training rays per scan at most (even stride over the returned rays).
     pub max_training_rays: usize,
+    /// Training rays per local expert (tile) at most.
+    pub max_rays_per_tile: usize,
+    /// Overlap of neighbouring tiles, as a fraction of a tile's core on each side.
+    pub tile_overlap: f64,
     /// Prior mean: `flat_ground` or `constant_range`.
     pub prior: PriorName,
     /// Sensor height above the ground for the flat-ground prior, metres.
     pub sensor_height_m: f64,
     /// Range of the constant-range prior, metres.
     pub constant_range_m: f64,
+    /// Online hyperparameter learning.
+    pub online: OnlineConfig,
+}
+
+/// Online hyperparameter learning (a thread of its own, never on the ingest path).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OnlineConfig {
+    /// Learn σ² and ℓ from the scans (starting from `kernel_variance` and `length_scale`). Off by
+    /// default: the likelihood optimum is calibrated for the bulk of the surface but not for
+    /// occluded ground, where elevation errors concentrate (docs/ARCHITECTURE.md).
+    pub enabled: bool,
+    /// L-BFGS iterations per scan.
+    pub iterations: u64,
+    /// Fraction of the way the estimate moves towards each scan's result (log space).
+    pub smoothing: f64,
+    /// Rays per scan used for an update (even stride).
+    pub subset_rays: usize,
+    /// Bounds of σ² (min, max).
+    pub variance_bounds: [f64; 2],
+    /// Bounds of ℓ (min, max), metres of chord on the range sphere.
+    pub length_scale_bounds: [f64; 2],
+}
+
+impl Default for OnlineConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            iterations: 3,
+            smoothing: 0.1,
+            subset_rays: 128,
+            variance_bounds: [1e-3, 1e2],
+            length_scale_bounds: [0.05, 50.0],
+        }
+    }
 }
 
 /// Prior mean names in the configuration.
@@ -164,10 +205,13 @@ impl Default for GpConfig {
             length_scale: 1.206,
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
-            max_training_rays: 400,
+            max_training_rays: 32_768,
+            max_rays_per_tile: 128,
+            tile_overlap: 0.15,
             prior: PriorName::FlatGround,
             sensor_height_m: 0.75,
             constant_range_m: 10.0,
+            online: OnlineConfig::default(),
         }
     }
 }
@@ -229,11 +273,22 @@ impl Config {
         if !(g.nugget_m2.is_finite() && g.nugget_m2 >= 0.0) {
             return bad("gp.nugget_m2 must be finite and non-negative");
         }
-        if !(1..=4096).contains(&g.max_training_rays) {
-            return bad("gp.max_training_rays must be in 1..=4096");
+        if g.max_training_rays == 0 || !(8..=4096).contains(&g.max_rays_per_tile) {
+            return bad("gp.max_training_rays must be positive and gp.max_rays_per_tile in 8..=4096");
+        }
+        if !(0.01..=0.45).contains(&g.tile_overlap) {
+            return bad("gp.tile_overlap must be in [0.01, 0.45]");
         }
         if !positive(g.sensor_height_m) || !positive(g.constant_range_m) {
             return bad("gp.sensor_height_m and gp.constant_range_m must be positive");
+        }
+        let o = &g.online;
+        let ordered = |b: [f64; 2]| b[0] > 0.0 && b[1] > b[0] && b[1].is_finite();
+        if o.iterations == 0 || o.subset_rays < 8 || !(o.smoothing > 0.0 && o.smoothing <= 1.0) {
+            return bad("gp.online needs iterations ≥ 1, subset_rays ≥ 8 and smoothing in (0, 1]");
+        }
+        if !ordered(o.variance_bounds) || !ordered(o.length_scale_bounds) {
+            return bad("gp.online bounds must be 0 < min < max");
         }
         if self.window.capacity == 0 {
             return bad("window.capacity must be positive");
@@ -264,6 +319,16 @@ impl Config {
         }
     }
 
+    /// Online hyperparameter learner starting from the configured kernel.
+    pub fn online_hyperparameters(&self) -> OnlineHyperparameters {
+        let o = &self.gp.online;
+        let bounds = HyperBounds {
+            variance: (o.variance_bounds[0], o.variance_bounds[1]),
+            length_scale: (o.length_scale_bounds[0], o.length_scale_bounds[1]),
+        };
+        OnlineHyperparameters::new(self.map_params().kernel, bounds, o.iterations, o.smoothing)
+    }
+
     /// Parameters for fitting local maps.
     pub fn map_params(&self) -> MapParams {
         let g = &self.gp;
@@ -272,6 +337,10 @@ impl Config {
             sphere_radius_m: g.sphere_radius_m,
             nugget_m2: g.nugget_m2,
             max_training_rays: g.max_training_rays,
+            tiling: Tiling {
+                max_rays_per_tile: g.max_rays_per_tile,
+                overlap: g.tile_overlap,
+            },
             prior: match g.prior {
                 PriorName::FlatGround => PriorKind::FlatGround {
                     sensor_height_m: g.sensor_height_m,

@@ -1,21 +1,22 @@
 //! The daemon: ingest thread → newest-wins queue → fitter thread → window → snapshot → queries.
 
 use crate::config::Config;
+use crate::gp::hyper::OnlineHyperparameters;
+use crate::gp::Kernel;
 use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits};
-use crate::map::local::{MapParams, ScanInput};
+use crate::map::local::{hyper_sample, HyperSample, MapParams, ScanInput};
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::metrics::Metrics;
 use crate::server::{QueryServer, ServerError, ServerState};
 use arc_swap::ArcSwap;
 use rangegp_client::transport::{zenoh_config, TransportConfigError};
-use rangegp_proto::msg::HyperparametersInfo;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use thiserror::Error;
-use tracing::{info, info_span, warn};
+use tracing::{debug, info, info_span, warn};
 use zenoh::Wait;
 
 /// The daemon could not start.
@@ -48,7 +49,15 @@ pub struct Daemon {
     server: Option<QueryServer>,
     ingest: Option<IngestHandle>,
     fitter: Option<JoinHandle<()>>,
+    learner: Option<JoinHandle<()>>,
     session: zenoh::Session,
+}
+
+/// The online hyperparameter thread and its input.
+struct Learner {
+    samples: Arc<LatestQueue<HyperSample>>,
+    subset: usize,
+    thread: JoinHandle<()>,
 }
 
 impl std::fmt::Debug for Daemon {
@@ -78,6 +87,7 @@ impl Daemon {
         let metrics = Arc::new(Metrics::default());
         let shutdown = Arc::new(AtomicBool::new(false));
         let params = config.map_params();
+        let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(ServerState {
             snapshot: ArcSwap::from_pointee(MapSnapshot::default()),
             metrics: Arc::clone(&metrics),
@@ -86,22 +96,39 @@ impl Daemon {
             max_ray_range_m: config.query.max_ray_range_m,
             batch_threads: config.query.threads,
             window_capacity: config.window.capacity,
-            hyperparameters: HyperparametersInfo {
-                kernel: format!("{:?}", params.kernel.family),
-                variance: params.kernel.variance,
-                length_scale: params.kernel.length_scale,
-                nugget: params.nugget_m2,
-            },
+            kernel: Arc::clone(&kernel),
+            nugget_m2: params.nugget_m2,
         });
+        let server = QueryServer::start(&session, Arc::clone(&state), config.query.threads, 64)?;
+        let learner = if config.gp.online.enabled {
+            let samples = Arc::new(LatestQueue::new(1));
+            let (rx, kernel, metrics, shutdown) = (
+                Arc::clone(&samples),
+                Arc::clone(&kernel),
+                Arc::clone(&metrics),
+                Arc::clone(&shutdown),
+            );
+            let online = config.online_hyperparameters();
+            let thread = std::thread::Builder::new()
+                .name("rangegp-hyper".into())
+                .spawn(move || hyper_loop(online, &rx, &kernel, &metrics, &shutdown))?;
+            Some(Learner {
+                samples,
+                subset: config.gp.online.subset_rays,
+                thread,
+            })
+        } else {
+            None
+        };
         let queue = Arc::new(LatestQueue::new(config.ingest.queue_len));
+        let feed = learner.as_ref().map(|l| (Arc::clone(&l.samples), l.subset));
         let fitter = {
             let (queue, state, shutdown) = (Arc::clone(&queue), Arc::clone(&state), Arc::clone(&shutdown));
             let capacity = config.window.capacity;
             std::thread::Builder::new()
                 .name("rangegp-fit".into())
-                .spawn(move || fit_loop(&queue, &state, &params, capacity, &shutdown))?
+                .spawn(move || fit_loop(&queue, &state, params, capacity, feed, &shutdown))?
         };
-        let server = QueryServer::start(&session, Arc::clone(&state), config.query.threads, 64)?;
         let ingest = spawn_ingest(
             IngestSettings {
                 service_name: config.scan_service_name(),
@@ -120,6 +147,9 @@ impl Daemon {
             Err(e) => {
                 shutdown.store(true, Ordering::Relaxed);
                 let _ = fitter.join();
+                if let Some(l) = learner {
+                    let _ = l.thread.join();
+                }
                 return Err(e.into());
             }
         };
@@ -134,6 +164,7 @@ impl Daemon {
             server: Some(server),
             ingest: Some(ingest),
             fitter: Some(fitter),
+            learner: learner.map(|l| l.thread),
             session,
         })
     }
@@ -162,6 +193,9 @@ impl Daemon {
         if let Some(f) = self.fitter.take() {
             let _ = f.join();
         }
+        if let Some(l) = self.learner.take() {
+            let _ = l.join();
+        }
         if let Err(e) = self.session.close().wait() {
             warn!(error = %e, "closing the zenoh session failed");
         }
@@ -179,8 +213,9 @@ impl Drop for Daemon {
 fn fit_loop(
     queue: &LatestQueue<ScanInput>,
     state: &ServerState,
-    params: &MapParams,
+    mut params: MapParams,
     capacity: usize,
+    learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
     shutdown: &AtomicBool,
 ) {
     let mut window = Window::new(capacity);
@@ -196,17 +231,54 @@ fn fit_loop(
         )
         .entered();
         let started = Instant::now();
-        match LocalRangeMap::fit(&scan, params) {
+        params.kernel = **state.kernel.load();
+        match LocalRangeMap::fit(&scan, &params) {
             Ok(map) => {
+                state
+                    .metrics
+                    .jittered_tiles
+                    .fetch_add(map.jittered_tiles() as u64, Ordering::Relaxed);
                 window.push(Arc::new(map));
                 state.snapshot.store(Arc::new(window.snapshot()));
                 state.metrics.record_fit(started.elapsed());
                 state.metrics.accepted.fetch_add(1, Ordering::Relaxed);
+                if let Some((samples, subset)) = &learner {
+                    samples.push(hyper_sample(&scan, &params, *subset));
+                }
             }
             Err(e) => {
                 state.metrics.reject(RejectReason::FitFailed);
                 warn!(error = %e, "fit failed; scan rejected");
             }
+        }
+    }
+}
+
+/// Applies online hyperparameter updates from the newest scan sample; the fitter picks the
+/// result up for the next scan. Failures keep the previous estimate.
+fn hyper_loop(
+    mut online: OnlineHyperparameters,
+    samples: &LatestQueue<HyperSample>,
+    kernel: &ArcSwap<Kernel>,
+    metrics: &Metrics,
+    shutdown: &AtomicBool,
+) {
+    while !shutdown.load(Ordering::Relaxed) {
+        let Some(sample) = samples.pop_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let _span = info_span!("hyperparameters", rays = sample.inputs.len()).entered();
+        match online.update(sample.as_training_set()) {
+            Ok(_) => {
+                kernel.store(Arc::new(online.kernel()));
+                metrics.hyper_updates.fetch_add(1, Ordering::Relaxed);
+                debug!(
+                    variance = online.kernel().variance,
+                    length_scale = online.kernel().length_scale,
+                    "hyperparameters updated"
+                );
+            }
+            Err(e) => warn!(error = %e, "hyperparameter update failed; keeping the previous estimate"),
         }
     }
 }

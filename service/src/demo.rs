@@ -59,6 +59,8 @@ pub struct DemoSummary {
     pub points_unobserved: usize,
     /// RMSE of observed elevations against ground truth, metres.
     pub elevation_rmse_m: f64,
+    /// Median absolute elevation error of observed points, metres.
+    pub elevation_median_abs_m: f64,
     /// Mean predicted σ of observed elevations, metres.
     pub mean_sigma_m: f64,
     /// Fraction of observed points whose truth lies within ±1.96 σ.
@@ -163,6 +165,7 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
         points_observed: errors.len(),
         points_unobserved: unobserved,
         elevation_rmse_m: rms(&errors),
+        elevation_median_abs_m: percentile(&mut errors.iter().map(|e| e.abs()).collect::<Vec<_>>(), 0.5),
         mean_sigma_m: sigmas.iter().sum::<f64>() / sigmas.len().max(1) as f64,
         coverage95: covered as f64 / errors.len().max(1) as f64,
         query_p50_us: percentile(&mut rtts, 0.50),
@@ -296,6 +299,10 @@ pub fn print_table(s: &DemoSummary, out: &std::path::Path) {
         s.points_observed, s.points_unobserved
     );
     println!("  elevation RMSE vs truth       {:>10.4} m", s.elevation_rmse_m);
+    println!(
+        "  median |error|                {:>10.4} m",
+        s.elevation_median_abs_m
+    );
     println!("  mean predicted σ_z            {:>10.4} m", s.mean_sigma_m);
     println!("  95 % coverage                 {:>10.3}", s.coverage95);
     println!(

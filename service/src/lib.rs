@@ -8,6 +8,7 @@
 //! - [`config`], [`metrics`]: TOML configuration, counters.
 //! - [`demo`], [`plot`]: the self-contained demo and its pictures.
 
+pub mod bench;
 pub mod config;
 pub mod daemon;
 pub mod demo;

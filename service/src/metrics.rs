@@ -18,6 +18,10 @@ pub struct Metrics {
     pub skipped: AtomicU64,
     /// Missing sequence numbers, all publishers.
     pub sequence_gaps: AtomicU64,
+    /// Online hyperparameter updates applied.
+    pub hyper_updates: AtomicU64,
+    /// Local experts that needed Cholesky jitter.
+    pub jittered_tiles: AtomicU64,
     fit_count: AtomicU64,
     fit_ns_total: AtomicU64,
     fit_ns_last: AtomicU64,
@@ -36,6 +40,8 @@ impl Default for Metrics {
             rejected: std::array::from_fn(|_| AtomicU64::new(0)),
             skipped: AtomicU64::new(0),
             sequence_gaps: AtomicU64::new(0),
+            hyper_updates: AtomicU64::new(0),
+            jittered_tiles: AtomicU64::new(0),
             fit_count: AtomicU64::new(0),
             fit_ns_total: AtomicU64::new(0),
             fit_ns_last: AtomicU64::new(0),

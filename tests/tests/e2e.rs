@@ -94,3 +94,24 @@ fn ray_from_a_pose_never_visited_meets_the_ground_truth() -> anyhow::Result<()> 
     assert!(e < 0.1, "ray range RMSE {e}");
     Ok(())
 }
+
+#[test]
+fn online_hyperparameters_are_learned_off_the_ingest_path() -> anyhow::Result<()> {
+    let h = Harness::start(|c| c.gp.online.enabled = true)?;
+    let start = h.client.status()?.hyperparameters;
+    let mut publisher = h.publisher(3)?;
+    let mut w = world(12, 6);
+    for i in 0..6 {
+        let scan = w.scan(i, now_ns());
+        publisher.publish(scan.header, &scan.points)?;
+    }
+    let s = h.wait_status("six scans and at least one hyperparameter update", |s| {
+        s.scans_accepted == 6 && s.hyperparameter_updates >= 1
+    })?;
+    let learned = s.hyperparameters;
+    assert!(learned.variance != start.variance && learned.length_scale != start.length_scale);
+    // The likelihood optimum on this terrain lies well inside the configured bounds.
+    assert!(learned.length_scale > 0.05 && learned.length_scale < 50.0);
+    assert!(learned.variance > 1e-3 && learned.variance < 1e2);
+    Ok(())
+}

@@ -2,7 +2,8 @@
 
 use super::fov::FieldOfView;
 use super::prior::Prior;
-use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Kernel};
+use super::tiles::{TiledGp, Tiling, TrainingRay};
+use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
 use nalgebra::{Isometry3, Vector3};
 use thiserror::Error;
 
@@ -60,8 +61,10 @@ pub struct MapParams {
     pub sphere_radius_m: f64,
     /// Noise variance added to every training ray on top of the sensor model, m².
     pub nugget_m2: f64,
-    /// At most this many rays train the GP (an even stride over the scan).
+    /// At most this many rays of a scan train its experts (an even stride over the scan).
     pub max_training_rays: usize,
+    /// How the scan is cut into local experts.
+    pub tiling: Tiling,
     /// Prior mean.
     pub prior: PriorKind,
     /// Cholesky jitter policy.
@@ -110,10 +113,9 @@ pub struct LocalRangeMap {
     pub stamp_ns: u64,
     pose: Isometry3<f64>,
     prior: Prior,
-    sphere_radius: f64,
     max_range: f64,
     fov: FieldOfView,
-    gp: ExactGp,
+    gp: TiledGp,
 }
 
 /// Residuals of this size (metres) and below count as "on the surface".
@@ -125,27 +127,15 @@ impl LocalRangeMap {
         if scan.rays.is_empty() {
             return Err(FitError::NoReturns);
         }
-        let prior = match params.prior {
-            PriorKind::FlatGround { sensor_height_m } => {
-                Prior::flat_ground(sensor_height_m, &scan.pose.rotation, scan.max_range_m)
-            }
-            PriorKind::ConstantRange { range_m } => Prior::ConstantRange { range_m },
-        };
-        let stride = scan.rays.len().div_ceil(params.max_training_rays.max(1));
-        let train: Vec<&RayObservation> = scan.rays.iter().step_by(stride).collect();
-        let inputs = train
-            .iter()
-            .map(|r| sphere::to_sphere(r.inclination, r.azimuth, params.sphere_radius_m))
-            .collect();
-        let targets: Vec<f64> = train
-            .iter()
-            .map(|r| r.range - prior.range(&unit(r.inclination, r.azimuth)))
-            .collect();
-        let noise: Vec<f64> = train
-            .iter()
-            .map(|r| (scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2)
-            .collect();
-        let gp = ExactGp::fit(params.kernel, inputs, &targets, &noise, params.jitter)?;
+        let prior = prior_of(scan, params);
+        let train = training_rays(scan, &prior, params, params.max_training_rays);
+        let gp = TiledGp::fit(
+            &train,
+            params.kernel,
+            params.sphere_radius_m,
+            params.tiling,
+            params.jitter,
+        )?;
         let angles: Vec<(f64, f64)> = scan.rays.iter().map(|r| (r.inclination, r.azimuth)).collect();
         Ok(Self {
             publisher_id: scan.publisher_id,
@@ -153,7 +143,6 @@ impl LocalRangeMap {
             stamp_ns: scan.stamp_ns,
             pose: scan.pose,
             prior,
-            sphere_radius: params.sphere_radius_m,
             max_range: scan.max_range_m,
             fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
             gp,
@@ -170,22 +159,40 @@ impl LocalRangeMap {
         self.max_range
     }
 
-    /// Training rays in the GP.
+    /// Training rays over all experts (rays in tile overlaps counted once per tile).
     pub fn training_rays(&self) -> usize {
-        self.gp.len()
+        self.gp.training_rays()
+    }
+
+    /// Local experts (tiles) of this map.
+    pub fn tiles(&self) -> usize {
+        self.gp.tiles()
     }
 
     /// Predicted range mean and latent variance along the sensor-frame direction (θ, φ).
     pub fn predict_range(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
-        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
-        let (resid, var) = self.gp.mean_variance(&x);
+        let (resid, var) = self.gp.mean_variance(inclination, azimuth);
         (self.prior.range(&unit(inclination, azimuth)) + resid, var)
+    }
+
+    /// The predicted surface point along sensor direction (θ, φ), in the map frame, with its
+    /// per-axis standard deviations s_r |w_x|, s_r |w_y|, s_r |w_z| (seed 000 Table I).
+    pub fn point(&self, inclination: f64, azimuth: f64) -> ([f64; 3], [f64; 3]) {
+        let (range, var) = self.predict_range(inclination, azimuth);
+        let w = self.pose.rotation * unit(inclination, azimuth);
+        let p = self.sensor_position() + w * range;
+        let s = var.sqrt();
+        ([p.x, p.y, p.z], [s * w.x.abs(), s * w.y.abs(), s * w.z.abs()])
+    }
+
+    /// Tiles whose Cholesky factorisation needed diagonal jitter.
+    pub fn jittered_tiles(&self) -> usize {
+        self.gp.jittered_tiles()
     }
 
     /// Mean range only (O(n)).
     fn mean_range(&self, inclination: f64, azimuth: f64) -> f64 {
-        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
-        self.prior.range(&unit(inclination, azimuth)) + self.gp.mean(&x)
+        self.prior.range(&unit(inclination, azimuth)) + self.gp.mean(inclination, azimuth)
     }
 
     /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
@@ -340,6 +347,80 @@ impl LocalRangeMap {
     }
 }
 
+/// The prior mean a scan is fitted with.
+fn prior_of(scan: &ScanInput, params: &MapParams) -> Prior {
+    match params.prior {
+        PriorKind::FlatGround { sensor_height_m } => {
+            Prior::flat_ground(sensor_height_m, &scan.pose.rotation, scan.max_range_m)
+        }
+        PriorKind::ConstantRange { range_m } => Prior::ConstantRange { range_m },
+    }
+}
+
+/// At most `cap` returned rays of `scan` (an even stride) as de-meaned training rays with their
+/// noise variances.
+fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize) -> Vec<TrainingRay> {
+    let stride = scan.rays.len().div_ceil(cap.max(1)).max(1);
+    scan.rays
+        .iter()
+        .step_by(stride)
+        .map(|r| TrainingRay {
+            inclination: r.inclination,
+            azimuth: r.azimuth,
+            residual: r.range - prior.range(&unit(r.inclination, r.azimuth)),
+            noise_var: (scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2,
+        })
+        .collect()
+}
+
+/// A scan's rays as a hyperparameter-learning sample: the `cap` rays nearest (on the sphere)
+/// to a centre ray that moves with the scan's sequence number, as points on the range sphere,
+/// residuals from the prior mean, and noise variances. A compact patch keeps the scan's own ray
+/// density, so the length scale is not biased by thinning (an even stride over the scan is).
+pub fn hyper_sample(scan: &ScanInput, params: &MapParams, cap: usize) -> HyperSample {
+    let prior = prior_of(scan, params);
+    let mut rays = training_rays(scan, &prior, params, usize::MAX);
+    if rays.len() > cap {
+        let centre = rays[(scan.sequence as usize).wrapping_mul(2_654_435_761) % rays.len()];
+        let c = sphere::to_sphere(centre.inclination, centre.azimuth, 1.0);
+        let dist = |r: &TrainingRay| {
+            crate::gp::kernel::distance(&c, &sphere::to_sphere(r.inclination, r.azimuth, 1.0))
+        };
+        rays.select_nth_unstable_by(cap - 1, |a, b| dist(a).total_cmp(&dist(b)));
+        rays.truncate(cap);
+    }
+    HyperSample {
+        inputs: rays
+            .iter()
+            .map(|r| sphere::to_sphere(r.inclination, r.azimuth, params.sphere_radius_m))
+            .collect(),
+        targets: rays.iter().map(|r| r.residual).collect(),
+        noise_var: rays.iter().map(|r| r.noise_var).collect(),
+    }
+}
+
+/// Training data for one hyperparameter update, owned so it can cross threads.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HyperSample {
+    /// Points on the range sphere.
+    pub inputs: Vec<[f64; 3]>,
+    /// Range residuals from the prior mean, metres.
+    pub targets: Vec<f64>,
+    /// Noise variances, m².
+    pub noise_var: Vec<f64>,
+}
+
+impl HyperSample {
+    /// Borrowed view for the likelihood code.
+    pub fn as_training_set(&self) -> crate::gp::likelihood::TrainingSet<'_> {
+        crate::gp::likelihood::TrainingSet {
+            inputs: &self.inputs,
+            targets: &self.targets,
+            noise_var: &self.noise_var,
+        }
+    }
+}
+
 /// Sensor-frame unit direction of (θ, φ).
 fn unit(inclination: f64, azimuth: f64) -> Vector3<f64> {
     let [x, y, z] = sphere::to_sphere(inclination, azimuth, 1.0);
@@ -374,6 +455,7 @@ mod tests {
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
             max_training_rays: 2000,
+            tiling: Tiling::default(),
             prior: PriorKind::FlatGround {
                 sensor_height_m: 0.75,
             },
@@ -448,6 +530,26 @@ mod tests {
         assert!(est.hit_probability > 0.99);
         let up = map.cast(origin, Vector3::new(1.0, 0.0, 0.05).normalize(), 3.0);
         assert!(up.is_none_or(|e| e.range.is_none() && e.hit_probability < 0.5));
+    }
+
+    #[test]
+    fn per_axis_sigma_follows_the_ray_direction() {
+        let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, 0.75),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+        );
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let (inc, az) = (100f64.to_radians(), 0.2);
+        let (p, sigma) = map.point(inc, az);
+        assert!(p[2].abs() < 2e-3, "flat ground at z = 0, got {}", p[2]);
+        let (_, var) = map.predict_range(inc, az);
+        let w = pose.rotation * unit(inc, az);
+        for axis in 0..3 {
+            assert!((sigma[axis] - var.sqrt() * w[axis].abs()).abs() < 1e-15);
+        }
+        // Oblique view: most of the range uncertainty is horizontal (seed 000's finding).
+        assert!(sigma[2] < sigma[0].hypot(sigma[1]));
     }
 
     #[test]

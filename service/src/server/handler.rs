@@ -180,10 +180,20 @@ fn status(state: &ServerState) -> StatusReply {
         scans_rejected: m.rejected_total(),
         rejections: m.rejections(),
         scans_skipped: m.skipped.load(Relaxed),
+        hyperparameter_updates: m.hyper_updates.load(Relaxed),
+        jittered_tiles: m.jittered_tiles.load(Relaxed),
         sequence_gaps: m.sequence_gaps.load(Relaxed),
         window_len: state.snapshot.load().maps.len() as u32,
         window_capacity: state.window_capacity as u32,
-        hyperparameters: state.hyperparameters.clone(),
+        hyperparameters: {
+            let k = state.kernel.load();
+            HyperparametersInfo {
+                kernel: format!("{:?}", k.family),
+                variance: k.variance,
+                length_scale: k.length_scale,
+                nugget: state.nugget_m2,
+            }
+        },
         fit_ms_last,
         fit_ms_mean,
         queries_ok: m.queries_ok.load(Relaxed),

@@ -4,13 +4,14 @@
 
 pub mod handler;
 
+use crate::gp::Kernel;
 use crate::map::MapSnapshot;
 use crate::metrics::Metrics;
 use arc_swap::ArcSwap;
 use handler::Endpoint;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::{MapKeys, QueryKind};
-use rangegp_proto::msg::{ErrorCode, ErrorReply, HyperparametersInfo};
+use rangegp_proto::msg::{ErrorCode, ErrorReply};
 use rangegp_proto::PROTOCOL_VERSION;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
@@ -37,8 +38,10 @@ pub struct ServerState {
     pub batch_threads: usize,
     /// Window capacity (for status).
     pub window_capacity: usize,
-    /// Hyperparameters (for status).
-    pub hyperparameters: HyperparametersInfo,
+    /// Kernel the fitter uses now (updated by online learning).
+    pub kernel: Arc<ArcSwap<Kernel>>,
+    /// Noise variance added to every training ray (for status).
+    pub nugget_m2: f64,
 }
 
 /// The server could not start.

@@ -1,0 +1,70 @@
+//! The elevation-GP baseline of seed 000 (and seeds 001–003): z as a GP over the ground plane,
+//! Matérn-3/2 plus known noise on (x, y), constant prior at the training points' mean height.
+//! Built on the same exact-GP machinery as the range maps, for side-by-side evaluation.
+
+use crate::gp::{CholeskyError, ExactGp, JitterPolicy, Kernel};
+
+/// z(x, y) ~ GP(mean z, k) fitted to 3-D points.
+#[derive(Debug, Clone)]
+pub struct ElevationGp {
+    gp: ExactGp,
+    mean_z: f64,
+}
+
+impl ElevationGp {
+    /// Fits to `points` (x, y, z) with per-point noise variances `noise_var` (panics on empty or
+    /// mismatched input: caller's misuse).
+    pub fn fit(
+        points: &[[f64; 3]],
+        noise_var: &[f64],
+        kernel: Kernel,
+        jitter: JitterPolicy,
+    ) -> Result<Self, CholeskyError> {
+        assert!(!points.is_empty(), "no points");
+        let mean_z = points.iter().map(|p| p[2]).sum::<f64>() / points.len() as f64;
+        let inputs = points.iter().map(|p| [p[0], p[1], 0.0]).collect();
+        let targets: Vec<f64> = points.iter().map(|p| p[2] - mean_z).collect();
+        Ok(Self {
+            gp: ExactGp::fit(kernel, inputs, &targets, noise_var, jitter)?,
+            mean_z,
+        })
+    }
+
+    /// Predicted height and its latent variance at (x, y).
+    pub fn predict(&self, x: f64, y: f64) -> (f64, f64) {
+        let (m, v) = self.gp.mean_variance(&[x, y, 0.0]);
+        (self.mean_z + m, v)
+    }
+
+    /// The underlying GP (for likelihood-based hyperparameter fits).
+    pub fn gp(&self) -> &ExactGp {
+        &self.gp
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recovers_a_tilted_plane_and_grows_uncertain_away_from_data() {
+        let plane = |x: f64, y: f64| 0.1 * x - 0.05 * y + 0.3;
+        let pts: Vec<[f64; 3]> = (0..100)
+            .map(|i| {
+                let (x, y) = ((i % 10) as f64 * 0.5, (i / 10) as f64 * 0.5);
+                [x, y, plane(x, y)]
+            })
+            .collect();
+        let gp = ElevationGp::fit(
+            &pts,
+            &vec![1e-6; pts.len()],
+            Kernel::matern32(0.1, 5.0),
+            JitterPolicy::default(),
+        )
+        .expect("fit");
+        let (z, v_in) = gp.predict(2.25, 2.25);
+        assert!((z - plane(2.25, 2.25)).abs() < 1e-3, "{z}");
+        let (_, v_out) = gp.predict(30.0, 30.0);
+        assert!(v_out > 100.0 * v_in);
+    }
+}
