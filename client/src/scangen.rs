@@ -77,13 +77,7 @@ impl ScanGenerator {
     /// A cratered world of `size_m` metres from `seed`, with a wander path of `scans` poses
     /// `step_m` apart.
     pub fn new(seed: u64, size_m: f64, preset: ScannerPreset, scans: usize, step_m: f64) -> Self {
-        let terrain = Heightmap::cratered(
-            seed,
-            &CraterParams {
-                size_m,
-                ..CraterParams::default()
-            },
-        );
+        let terrain = Heightmap::cratered(seed, &CraterParams::sized(size_m));
         let path = Path::wander(seed ^ 0x5eed, &terrain, scans, step_m, 0.25);
         Self {
             terrain,

@@ -7,6 +7,6 @@ pub mod path;
 pub mod sensor;
 pub mod terrain;
 
-pub use path::Path;
+pub use path::{level_pose, Path};
 pub use sensor::{simulate_scan, ScannerPreset, SimRay};
 pub use terrain::{CraterParams, Heightmap};

@@ -39,12 +39,18 @@ impl Path {
     /// Sensor pose at waypoint `i`: level, yawed to the heading, `mount_height_m` above ground.
     pub fn pose(&self, terrain: &Heightmap, i: usize, mount_height_m: f64) -> Isometry3<f64> {
         let [x, y, heading] = self.waypoints[i];
-        let ground = terrain.height(x, y).unwrap_or(0.0);
-        Isometry3::from_parts(
-            Translation3::new(x, y, ground + mount_height_m),
-            UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
-        )
+        level_pose(terrain, x, y, heading, mount_height_m)
     }
+}
+
+/// A level sensor over map (x, y), yawed to `heading`, `mount_height_m` above the ground there
+/// (above z = 0 off the map).
+pub fn level_pose(terrain: &Heightmap, x: f64, y: f64, heading: f64, mount_height_m: f64) -> Isometry3<f64> {
+    let ground = terrain.height(x, y).unwrap_or(0.0);
+    Isometry3::from_parts(
+        Translation3::new(x, y, ground + mount_height_m),
+        UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
+    )
 }
 
 fn wrap(a: f64) -> f64 {

@@ -27,6 +27,16 @@ pub struct CraterParams {
     pub roughness_m: f64,
 }
 
+impl CraterParams {
+    /// The default parameters on a map of `size_m` metres.
+    pub fn sized(size_m: f64) -> Self {
+        Self {
+            size_m,
+            ..Self::default()
+        }
+    }
+}
+
 impl Default for CraterParams {
     fn default() -> Self {
         Self {
@@ -238,10 +248,7 @@ mod tests {
     use super::*;
 
     fn small() -> Heightmap {
-        let p = CraterParams {
-            size_m: 30.0,
-            ..CraterParams::default()
-        };
+        let p = CraterParams::sized(30.0);
         Heightmap::cratered(7, &p)
     }
 
@@ -249,10 +256,7 @@ mod tests {
     fn same_seed_same_terrain() {
         let (a, b) = (small(), small());
         assert_eq!(a.z, b.z);
-        let p = CraterParams {
-            size_m: 30.0,
-            ..CraterParams::default()
-        };
+        let p = CraterParams::sized(30.0);
         assert_ne!(a.z, Heightmap::cratered(8, &p).z);
     }
 

@@ -7,7 +7,6 @@ use crate::gp::likelihood::TrainingSet;
 use crate::gp::Kernel;
 use crate::map::local::{hyper_sample, RayObservation, ScanInput};
 use anyhow::Result;
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -75,10 +74,7 @@ fn training_scan(terrain: &Heightmap, rng: &mut Pcg64) -> ScanInput {
     let lim = terrain.half_extent() - 12.0;
     let (x, y) = (rng.random_range(-lim..lim), rng.random_range(-lim..lim));
     let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-    let pose = Isometry3::from_parts(
-        Translation3::new(x, y, terrain.height(x, y).unwrap_or(0.0) + preset.mount_height_m),
-        UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
-    );
+    let pose = rangegp_sim::level_pose(terrain, x, y, heading, preset.mount_height_m);
     let mut rays: Vec<RayObservation> = simulate_scan(terrain, &pose, &preset, rng)
         .into_iter()
         .filter_map(|r| {

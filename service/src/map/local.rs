@@ -506,18 +506,9 @@ mod tests {
 
     #[test]
     fn ray_cast_meets_the_cratered_ground_from_an_unvisited_origin() {
-        let terrain = Heightmap::cratered(
-            11,
-            &CraterParams {
-                size_m: 40.0,
-                ..CraterParams::default()
-            },
-        );
-        let ground = terrain.height(0.0, 0.0).expect("inside");
-        let pose = Isometry3::from_parts(
-            Translation3::new(0.0, 0.0, ground + 0.75),
-            UnitQuaternion::identity(),
-        );
+        let terrain = Heightmap::cratered(11, &CraterParams::sized(40.0));
+        let pose = rangegp_sim::level_pose(&terrain, 0.0, 0.0, 0.0, 0.75);
+        let ground = pose.translation.z - 0.75;
         let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
         let origin = Vector3::new(1.0, 0.5, ground + 1.2);
         let dir = Vector3::new(1.0, 0.1, -0.35).normalize();

@@ -275,25 +275,15 @@ impl TiledGp {
 mod tests {
     use super::*;
     use crate::map::prior::Prior;
-    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+    use nalgebra::{UnitQuaternion, Vector3};
     use rand::SeedableRng;
     use rangegp_sim::{simulate_scan, CraterParams, Heightmap, ScannerPreset};
 
     /// A denser seed-000 scanner (25 rings × 161 columns) over cratered ground: about 3000
     /// returns for training, and held-out rays between them with exact ranges.
     fn scan() -> (Vec<TrainingRay>, Vec<(f64, f64, f64)>) {
-        let terrain = Heightmap::cratered(
-            21,
-            &CraterParams {
-                size_m: 40.0,
-                ..CraterParams::default()
-            },
-        );
-        let ground = terrain.height(0.0, 0.0).expect("inside");
-        let pose = Isometry3::from_parts(
-            Translation3::new(0.0, 0.0, ground + 0.75),
-            UnitQuaternion::identity(),
-        );
+        let terrain = Heightmap::cratered(21, &CraterParams::sized(40.0));
+        let pose = rangegp_sim::level_pose(&terrain, 0.0, 0.0, 0.0, 0.75);
         let grid = |rings: usize, cols: usize, offset: f64| ScannerPreset {
             name: "dense",
             inclinations_rad: (0..rings)
