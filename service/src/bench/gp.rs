@@ -376,7 +376,9 @@ fn run_peers(
 pub fn print_gp(r: &GpReport) {
     println!("\nrangegp GP engine benchmark (this machine, medians)");
     println!("  Cholesky GFLOP/s, one thread     n:  faer   OpenBLAS   ratio");
-    for (n, g) in &r.chol_gflops {
+    let mut sizes: Vec<(&String, &f64)> = r.chol_gflops.iter().collect();
+    sizes.sort_by_key(|(n, _)| n.parse::<usize>().unwrap_or(usize::MAX));
+    for (n, g) in sizes {
         let b = r.openblas_gflops.as_ref().and_then(|o| o.get(n)).copied();
         match b {
             Some(b) => println!(
