@@ -69,11 +69,12 @@ pub struct GpConfig {
     /// Kernel family: `{ family = "matern32" }` (default), `matern52`, `squared_exponential`,
     /// `rational_quadratic` (with `alpha`), `arc_sine`.
     pub kernel: KernelFamily,
-    /// Kernel variance σ² (seed 000 Table I: 2.302).
+    /// Kernel variance σ² of the amplitude-scaled residual, m² (`rangegp-eval local`: 5e-4).
     pub kernel_variance: f64,
-    /// Length scale on the range sphere, metres of chord (seed 000 Table I: 1.206).
+    /// Length scale between kernel inputs (ground footprints under the flat-ground prior, points
+    /// of the range sphere under the constant-range prior), metres (`rangegp-eval local`: 0.97).
     pub length_scale: f64,
-    /// Radius of the range sphere, metres (seed 000: R_max = 10).
+    /// Footprints are capped at this range; the range-sphere radius, metres (seed 000: R_max = 10).
     pub sphere_radius_m: f64,
     /// Noise variance added to every training ray on top of the sensor model, m².
     pub nugget_m2: f64,
@@ -109,7 +110,7 @@ pub struct OnlineConfig {
     pub subset_rays: usize,
     /// Bounds of σ² (min, max).
     pub variance_bounds: [f64; 2],
-    /// Bounds of ℓ (min, max), metres of chord on the range sphere.
+    /// Bounds of ℓ (min, max), metres (the units of `gp.length_scale`).
     pub length_scale_bounds: [f64; 2],
 }
 
@@ -120,7 +121,7 @@ impl Default for OnlineConfig {
             iterations: 3,
             smoothing: 0.1,
             subset_rays: 128,
-            variance_bounds: [1e-3, 1e2],
+            variance_bounds: [1e-6, 1e1],
             length_scale_bounds: [0.05, 50.0],
         }
     }
@@ -201,8 +202,8 @@ impl Default for GpConfig {
     fn default() -> Self {
         Self {
             kernel: KernelFamily::Matern32,
-            kernel_variance: 2.302,
-            length_scale: 1.206,
+            kernel_variance: 5e-4,
+            length_scale: 0.97,
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
             max_training_rays: 32_768,

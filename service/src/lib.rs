@@ -12,6 +12,7 @@ pub mod bench;
 pub mod config;
 pub mod daemon;
 pub mod demo;
+pub mod eval;
 pub mod gp;
 pub mod ingest;
 pub mod map;

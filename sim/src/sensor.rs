@@ -1,6 +1,6 @@
-//! LiDAR presets and scan simulation against a [`Heightmap`].
+//! LiDAR presets and scan simulation against any [`Surface`].
 
-use crate::terrain::Heightmap;
+use crate::scene::Surface;
 use nalgebra::{Isometry3, Vector3};
 use rand::Rng;
 
@@ -129,8 +129,8 @@ pub struct SimRay {
 
 /// Casts every ray of `preset` from `pose` (sensor frame in the map frame) and adds range noise
 /// σ = `range_noise_per_m` · r drawn from `rng`.
-pub fn simulate_scan<R: Rng>(
-    terrain: &Heightmap,
+pub fn simulate_scan<S: Surface + ?Sized, R: Rng>(
+    surface: &S,
     pose: &Isometry3<f64>,
     preset: &ScannerPreset,
     rng: &mut R,
@@ -140,7 +140,7 @@ pub fn simulate_scan<R: Rng>(
     for (ring, &inc) in preset.inclinations_rad.iter().enumerate() {
         for (column, &az) in preset.azimuths_rad.iter().enumerate() {
             let dir = pose.rotation * direction(inc, az);
-            let true_range = terrain
+            let true_range = surface
                 .cast(origin, dir, preset.max_range_m)
                 .filter(|&r| r < preset.max_range_m);
             let measured = true_range.map(|r| r + preset.range_noise_per_m * r * standard_normal(rng));
@@ -167,6 +167,7 @@ pub fn standard_normal<R: Rng>(rng: &mut R) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::terrain::Heightmap;
     use nalgebra::{Translation3, UnitQuaternion};
     use rand::SeedableRng;
     use rand_pcg::Pcg64;

@@ -4,7 +4,7 @@
 use crate::config::Config;
 use crate::gp::{factor_with_jitter, sphere, ExactGp, JitterPolicy, Kernel};
 use crate::ingest::validate::{validate, ValidationLimits};
-use crate::map::local::{hyper_sample, LocalRangeMap, MapParams, ScanInput};
+use crate::map::local::{embedding_of, hyper_sample, LocalRangeMap, MapParams, ScanInput};
 use anyhow::{Context, Result};
 use faer::Mat;
 use rand::{Rng, SeedableRng};
@@ -220,10 +220,11 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
     // The scikit-learn problem: one seed-000 scan, all returns, exact GP; 4096 queries.
     let scan = &scans(&terrain, &presets[0], 1, 99)?[0];
     let sample = hyper_sample(scan, &params, usize::MAX);
+    let embedding = embedding_of(scan, &params);
     let queries: Vec<[f64; 3]> = angles
         .iter()
         .take(4096)
-        .map(|&(t, p)| sphere::to_sphere(t, p, 10.0))
+        .map(|&(t, p)| embedding.point(t, p))
         .collect();
     let mut exact_t: Vec<f64> = (0..repeats)
         .map(|_| {
@@ -262,7 +263,7 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
                 let gp = crate::map::tiles::TiledGp::fit(
                     &tiled_rays,
                     params.kernel,
-                    10.0,
+                    embedding,
                     params.tiling,
                     params.jitter,
                 );

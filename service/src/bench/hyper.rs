@@ -2,15 +2,16 @@
 //! of each scan's returns train, optimiser started at σ² = 2.5, ℓ = 0.15).
 
 use crate::config::Config;
+use crate::eval::scores::MeanSd;
 use crate::gp::hyper::{fit_hyperparameters, HyperBounds};
 use crate::gp::likelihood::TrainingSet;
 use crate::gp::Kernel;
-use crate::map::local::{hyper_sample, RayObservation, ScanInput};
+use crate::eval::split::{random_pose, split_scan};
+use crate::map::local::{hyper_sample, ScanInput};
 use anyhow::Result;
-use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_pcg::Pcg64;
-use rangegp_sim::{simulate_scan, CraterParams, Heightmap, ScannerPreset};
+use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -26,17 +27,6 @@ pub struct HyperOptions {
     /// Output folder for hyper.json.
     #[arg(long, default_value = "bench-out")]
     pub out: PathBuf,
-}
-
-/// Mean, standard deviation and median.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct MeanSd {
-    /// Mean.
-    pub mean: f64,
-    /// Sample standard deviation.
-    pub sd: f64,
-    /// Median (what a log-space smoother tracks when the spread is skewed).
-    pub median: f64,
 }
 
 /// The comparison `hyper.json` holds.
@@ -56,46 +46,11 @@ pub struct HyperReport {
     pub online_within_one_sd: bool,
 }
 
-fn mean_sd(v: &[f64]) -> MeanSd {
-    let mean = v.iter().sum::<f64>() / v.len() as f64;
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len().max(2) - 1) as f64;
-    let mut sorted = v.to_vec();
-    sorted.sort_by(f64::total_cmp);
-    MeanSd {
-        mean,
-        sd: var.sqrt(),
-        median: sorted[sorted.len() / 2],
-    }
-}
-
 /// A seed-000 scan at a random pose with 20 % of its returns, noisy, kept for training.
 fn training_scan(terrain: &Heightmap, rng: &mut Pcg64) -> ScanInput {
     let preset = ScannerPreset::seed000();
-    let lim = terrain.half_extent() - 12.0;
-    let (x, y) = (rng.random_range(-lim..lim), rng.random_range(-lim..lim));
-    let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-    let pose = rangegp_sim::level_pose(terrain, x, y, heading, preset.mount_height_m);
-    let mut rays: Vec<RayObservation> = simulate_scan(terrain, &pose, &preset, rng)
-        .into_iter()
-        .filter_map(|r| {
-            r.measured_range_m.map(|range| RayObservation {
-                inclination: r.inclination_rad,
-                azimuth: r.azimuth_rad,
-                range,
-            })
-        })
-        .collect();
-    rays.shuffle(rng);
-    rays.truncate(rays.len() / 5);
-    ScanInput {
-        publisher_id: 0,
-        sequence: 0,
-        stamp_ns: 0,
-        pose,
-        max_range_m: preset.max_range_m,
-        range_noise_per_m: preset.range_noise_per_m,
-        rays,
-    }
+    let pose = random_pose(terrain, 12.0, preset.mount_height_m, rng);
+    split_scan(terrain, pose, &preset, 0.2, 0, rng).train
 }
 
 /// Runs the comparison: every scan's own optimum (100 L-BFGS iterations from the paper's start)
@@ -124,7 +79,7 @@ pub fn run_hyper(opts: &HyperOptions) -> Result<HyperReport> {
             noise_var: &sample.noise_var,
         };
         let bounds = HyperBounds {
-            variance: (1e-3, 1e2),
+            variance: (1e-6, 1e1),
             length_scale: (0.05, 50.0),
         };
         let fit = fit_hyperparameters(&start, set, bounds, 100)?;
@@ -135,7 +90,7 @@ pub fn run_hyper(opts: &HyperOptions) -> Result<HyperReport> {
             eprintln!("      {}/{} scans", i + 1, opts.scans);
         }
     }
-    let (bv, bl) = (mean_sd(&vars), mean_sd(&ells));
+    let (bv, bl) = (MeanSd::of(&vars), MeanSd::of(&ells));
     let k = online.kernel();
     let report = HyperReport {
         scans: opts.scans,

@@ -149,8 +149,12 @@ pub fn fit_hyperparameters(
     let u = state
         .get_best_param()
         .ok_or_else(|| HyperError::Optimiser("no parameter was evaluated".into()))?;
-    let kernel = result.problem.problem.as_ref().map(|p| p.kernel_at(u));
-    let kernel = kernel.ok_or_else(|| HyperError::Optimiser("problem lost".into()))?;
+    let kernel = Problem {
+        kernel: *start,
+        data,
+        squash,
+    }
+    .kernel_at(u);
     Ok(HyperFit {
         variance: kernel.variance,
         length_scale: kernel.length_scale,

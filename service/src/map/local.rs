@@ -1,5 +1,6 @@
 //! The local range map of one scan: range as a GP over (inclination, azimuth) (seed 000 §III-A).
 
+use super::embedding::Embedding;
 use super::fov::FieldOfView;
 use super::prior::Prior;
 use super::tiles::{TiledGp, Tiling, TrainingRay};
@@ -57,7 +58,8 @@ pub enum PriorKind {
 pub struct MapParams {
     /// Kernel on the range sphere.
     pub kernel: Kernel,
-    /// Radius of the range sphere the kernel distances are measured on, metres.
+    /// Kernel inputs are the prior's expected hit points, capped at this range (the range-sphere
+    /// radius under the constant-range prior), metres.
     pub sphere_radius_m: f64,
     /// Noise variance added to every training ray on top of the sensor model, m².
     pub nugget_m2: f64,
@@ -132,7 +134,7 @@ impl LocalRangeMap {
         let gp = TiledGp::fit(
             &train,
             params.kernel,
-            params.sphere_radius_m,
+            Embedding::new(prior, params.sphere_radius_m),
             params.tiling,
             params.jitter,
         )?;
@@ -172,7 +174,9 @@ impl LocalRangeMap {
     /// Predicted range mean and latent variance along the sensor-frame direction (θ, φ).
     pub fn predict_range(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
         let (resid, var) = self.gp.mean_variance(inclination, azimuth);
-        (self.prior.range(&unit(inclination, azimuth)) + resid, var)
+        let u = unit(inclination, azimuth);
+        let a = self.prior.amplitude(&u);
+        (self.prior.range(&u) + a * resid, a * a * var)
     }
 
     /// The predicted surface point along sensor direction (θ, φ), in the map frame, with its
@@ -192,7 +196,8 @@ impl LocalRangeMap {
 
     /// Mean range only (O(n)).
     fn mean_range(&self, inclination: f64, azimuth: f64) -> f64 {
-        self.prior.range(&unit(inclination, azimuth)) + self.gp.mean(inclination, azimuth)
+        let u = unit(inclination, azimuth);
+        self.prior.range(&u) + self.prior.amplitude(&u) * self.gp.mean(inclination, azimuth)
     }
 
     /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
@@ -347,6 +352,11 @@ impl LocalRangeMap {
     }
 }
 
+/// The kernel-input map of `scan`'s local map (its prior's footprints).
+pub fn embedding_of(scan: &ScanInput, params: &MapParams) -> Embedding {
+    Embedding::new(prior_of(scan, params), params.sphere_radius_m)
+}
+
 /// The prior mean a scan is fitted with.
 fn prior_of(scan: &ScanInput, params: &MapParams) -> Prior {
     match params.prior {
@@ -357,18 +367,22 @@ fn prior_of(scan: &ScanInput, params: &MapParams) -> Prior {
     }
 }
 
-/// At most `cap` returned rays of `scan` (an even stride) as de-meaned training rays with their
-/// noise variances.
+/// At most `cap` returned rays of `scan` (an even stride) as training rays: residuals from the
+/// prior divided by the prior's amplitude, noise variances divided by its square.
 fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize) -> Vec<TrainingRay> {
     let stride = scan.rays.len().div_ceil(cap.max(1)).max(1);
     scan.rays
         .iter()
         .step_by(stride)
-        .map(|r| TrainingRay {
-            inclination: r.inclination,
-            azimuth: r.azimuth,
-            residual: r.range - prior.range(&unit(r.inclination, r.azimuth)),
-            noise_var: (scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2,
+        .map(|r| {
+            let u = unit(r.inclination, r.azimuth);
+            let a = prior.amplitude(&u);
+            TrainingRay {
+                inclination: r.inclination,
+                azimuth: r.azimuth,
+                residual: (r.range - prior.range(&u)) / a,
+                noise_var: ((scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2) / (a * a),
+            }
         })
         .collect()
 }
@@ -379,6 +393,7 @@ fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize
 /// density, so the length scale is not biased by thinning (an even stride over the scan is).
 pub fn hyper_sample(scan: &ScanInput, params: &MapParams, cap: usize) -> HyperSample {
     let prior = prior_of(scan, params);
+    let embedding = embedding_of(scan, params);
     let mut rays = training_rays(scan, &prior, params, usize::MAX);
     if rays.len() > cap {
         let centre = rays[(scan.sequence as usize).wrapping_mul(2_654_435_761) % rays.len()];
@@ -392,7 +407,7 @@ pub fn hyper_sample(scan: &ScanInput, params: &MapParams, cap: usize) -> HyperSa
     HyperSample {
         inputs: rays
             .iter()
-            .map(|r| sphere::to_sphere(r.inclination, r.azimuth, params.sphere_radius_m))
+            .map(|r| embedding.point(r.inclination, r.azimuth))
             .collect(),
         targets: rays.iter().map(|r| r.residual).collect(),
         noise_var: rays.iter().map(|r| r.noise_var).collect(),
@@ -451,7 +466,7 @@ mod tests {
 
     pub(crate) fn params() -> MapParams {
         MapParams {
-            kernel: Kernel::matern32(2.30, 1.21),
+            kernel: Kernel::matern32(5e-4, 0.97),
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
             max_training_rays: 2000,

@@ -52,6 +52,22 @@ impl Prior {
     }
 }
 
+impl Prior {
+    /// Scale of the GP residual along `u`, dimensionless (MATH.md "Residual amplitude"): the
+    /// range GP models residual / amplitude, so its kernel is a(u) a(u′) k(u, u′).
+    ///
+    /// Over flat ground a height change dz moves the range by dz / |w_z| = dz · prior / height:
+    /// residuals near the horizon are tens of times larger than under the sensor, and one
+    /// stationary σ² cannot fit both. Dividing by prior / height makes the modelled quantity a
+    /// height-like residual of one scale everywhere. The constant-range prior has amplitude 1.
+    pub fn amplitude(&self, u: &Vector3<f64>) -> f64 {
+        match *self {
+            Prior::ConstantRange { .. } => 1.0,
+            Prior::FlatGround { height_m, .. } => (self.range(u) / height_m).max(1.0),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -4,7 +4,8 @@
 //! partition of unity whose weights fall to zero at each tile's outer edge, so the blended mean
 //! and variance are continuous across tile borders (no seams by construction).
 
-use crate::gp::{sphere, CholeskyError, ExactGp, JitterPolicy, Kernel};
+use super::embedding::Embedding;
+use crate::gp::{CholeskyError, ExactGp, JitterPolicy, Kernel};
 use rayon::prelude::*;
 use std::f64::consts::TAU;
 
@@ -130,7 +131,7 @@ fn smoothstep(t: f64) -> f64 {
 pub struct TiledGp {
     grid: Grid,
     experts: Vec<Option<ExactGp>>,
-    sphere_radius: f64,
+    embedding: Embedding,
 }
 
 impl TiledGp {
@@ -138,7 +139,7 @@ impl TiledGp {
     pub fn fit(
         rays: &[TrainingRay],
         kernel: Kernel,
-        sphere_radius: f64,
+        embedding: Embedding,
         tiling: Tiling,
         jitter: JitterPolicy,
     ) -> Result<Self, CholeskyError> {
@@ -197,7 +198,7 @@ impl TiledGp {
                 let chosen: Vec<&TrainingRay> = idx.iter().step_by(stride).map(|&i| &rays[i]).collect();
                 let inputs = chosen
                     .iter()
-                    .map(|r| sphere::to_sphere(r.inclination, r.azimuth, sphere_radius))
+                    .map(|r| embedding.point(r.inclination, r.azimuth))
                     .collect();
                 let targets: Vec<f64> = chosen.iter().map(|r| r.residual).collect();
                 let noise: Vec<f64> = chosen.iter().map(|r| r.noise_var).collect();
@@ -207,7 +208,7 @@ impl TiledGp {
         Ok(Self {
             grid,
             experts,
-            sphere_radius,
+            embedding,
         })
     }
 
@@ -232,13 +233,13 @@ impl TiledGp {
 
     /// Blended residual mean at (θ, φ) (O(n) per covering expert).
     pub fn mean(&self, inclination: f64, azimuth: f64) -> f64 {
-        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        let x = self.embedding.point(inclination, azimuth);
         self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
     }
 
     /// Blended residual mean and variance (mixture of the covering experts).
     pub fn mean_variance(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
-        let x = sphere::to_sphere(inclination, azimuth, self.sphere_radius);
+        let x = self.embedding.point(inclination, azimuth);
         self.blend(inclination, azimuth, |gp| gp.mean_variance(&x))
     }
 
@@ -274,6 +275,7 @@ impl TiledGp {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gp::sphere;
     use crate::map::prior::Prior;
     use nalgebra::{UnitQuaternion, Vector3};
     use rand::SeedableRng;
@@ -348,7 +350,7 @@ mod tests {
         let noise: Vec<f64> = train.iter().map(|r| r.noise_var).collect();
         let exact = ExactGp::fit(kernel, inputs, &targets, &noise, JitterPolicy::default()).expect("exact");
         let tiled =
-            TiledGp::fit(&train, kernel, 10.0, Tiling::default(), JitterPolicy::default()).expect("tiled");
+            TiledGp::fit(&train, kernel, Embedding::sphere(10.0), Tiling::default(), JitterPolicy::default()).expect("tiled");
         assert!(tiled.tiles() >= 12, "only {} tiles", tiled.tiles());
         let e = rmse(&test, |t, p| exact.mean(&sphere::to_sphere(t, p, 10.0)));
         let t = rmse(&test, |th, p| tiled.mean(th, p));
@@ -411,7 +413,7 @@ mod tests {
         let gp = TiledGp::fit(
             &rays,
             Kernel::matern32(1.0, 0.8),
-            10.0,
+            Embedding::sphere(10.0),
             Tiling {
                 max_rays_per_tile: 64,
                 overlap: 0.25,
