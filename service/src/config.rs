@@ -2,7 +2,7 @@
 
 use crate::gp::hyper::{HyperBounds, OnlineHyperparameters};
 use crate::gp::{JitterPolicy, Kernel, KernelFamily};
-use crate::map::local::{MapParams, PriorKind};
+use crate::map::local::{MapParams, PriorKind, RangeTarget};
 use crate::map::tiles::Tiling;
 use rangegp_proto::keys::MapKeys;
 use serde::{Deserialize, Serialize};
@@ -74,6 +74,8 @@ pub struct GpConfig {
     /// Length scale between kernel inputs (ground footprints under the flat-ground prior, points
     /// of the range sphere under the constant-range prior), metres (`rangegp-eval local`: 0.97).
     pub length_scale: f64,
+    /// What the GP models along a ray: `range` (seed 000) or `inverse_range` (planes are linear).
+    pub target: RangeTarget,
     /// Footprints are capped at this range; the range-sphere radius, metres (seed 000: R_max = 10).
     pub sphere_radius_m: f64,
     /// Noise variance added to every training ray on top of the sensor model, m².
@@ -204,6 +206,7 @@ impl Default for GpConfig {
             kernel: KernelFamily::Matern32,
             kernel_variance: 5e-4,
             length_scale: 0.97,
+            target: RangeTarget::Range,
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
             max_training_rays: 32_768,
@@ -350,6 +353,7 @@ impl Config {
                     range_m: g.constant_range_m,
                 },
             },
+            target: g.target,
             jitter: JitterPolicy::default(),
         }
     }

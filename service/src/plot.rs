@@ -22,6 +22,37 @@ pub struct Raster {
 }
 
 impl Raster {
+    /// Samples `f` at the centres of a grid over [x0, x1] × [y0, y1] with cell `resolution`
+    /// (in parallel: each value may be a map query).
+    pub fn from_fn(
+        (x0, y0): (f64, f64),
+        (x1, y1): (f64, f64),
+        resolution: f64,
+        f: impl Fn(f64, f64) -> Option<f64> + Sync,
+    ) -> Self {
+        use rayon::prelude::*;
+        let nx = (((x1 - x0) / resolution).ceil() as usize).max(1);
+        let ny = (((y1 - y0) / resolution).ceil() as usize).max(1);
+        let values = (0..nx * ny)
+            .into_par_iter()
+            .map(|k| {
+                let (col, row) = (k % nx, k / nx);
+                f(
+                    x0 + (col as f64 + 0.5) * resolution,
+                    y0 + (row as f64 + 0.5) * resolution,
+                )
+            })
+            .collect();
+        Self {
+            nx,
+            ny,
+            x0: x0 + 0.5 * resolution,
+            y0: y0 + 0.5 * resolution,
+            resolution,
+            values,
+        }
+    }
+
     /// (min, max) of the present values, or `None` when every cell is empty.
     pub fn range(&self) -> Option<(f64, f64)> {
         self.values.iter().flatten().fold(None, |acc, &v| match acc {

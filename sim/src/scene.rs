@@ -95,7 +95,10 @@ mod tests {
         let side = Vector3::new(0.0, -1.0, 0.0);
         assert!((t.cast(o, side, 10.0).expect("wall") - 2.0).abs() < 1e-12);
         let along = Vector3::new(1.0, 0.0, 0.0);
-        assert!(t.cast(o, along, 10.0).is_none(), "open along the axis within 10 m");
+        assert!(
+            t.cast(o, along, 10.0).is_none(),
+            "open along the axis within 10 m"
+        );
         assert!(t.cast(Vector3::new(0.0, 3.0, 1.0), up, 10.0).is_none(), "outside");
     }
 

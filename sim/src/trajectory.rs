@@ -65,7 +65,9 @@ impl<'a> Grid<'a> {
         g.blocked = (0..cells * cells)
             .map(|k| {
                 let [x, y] = g.centre((k % cells, k / cells));
-                terrain.height(x, y).is_none_or(|h| (h - mean).abs() > p.obstacle_threshold_m)
+                terrain
+                    .height(x, y)
+                    .is_none_or(|h| (h - mean).abs() > p.obstacle_threshold_m)
             })
             .collect();
         g
@@ -88,7 +90,9 @@ impl<'a> Grid<'a> {
     }
 
     fn free(&self, (i, j): (i64, i64)) -> bool {
-        (0..self.cells).contains(&i) && (0..self.cells).contains(&j) && !self.blocked[(j * self.cells + i) as usize]
+        (0..self.cells).contains(&i)
+            && (0..self.cells).contains(&j)
+            && !self.blocked[(j * self.cells + i) as usize]
     }
 
     /// 8-connected free neighbours with costs in millimetres.
@@ -125,7 +129,12 @@ pub fn obstacle_fraction(terrain: &Heightmap, p: TrajectoryParams) -> f64 {
 
 /// Plans `count` trajectories with random start / goal pairs drawn from `seed`. Pairs with no
 /// path are redrawn (at most 100 draws per trajectory); `None` if the map has no room for them.
-pub fn plan_trajectories(terrain: &Heightmap, seed: u64, count: usize, p: TrajectoryParams) -> Option<Vec<Trajectory>> {
+pub fn plan_trajectories(
+    terrain: &Heightmap,
+    seed: u64,
+    count: usize,
+    p: TrajectoryParams,
+) -> Option<Vec<Trajectory>> {
     let grid = Grid::new(terrain, p);
     let mut rng = Pcg64::seed_from_u64(seed);
     let lim = terrain.half_extent() - p.margin_m;
@@ -138,7 +147,10 @@ pub fn plan_trajectories(terrain: &Heightmap, seed: u64, count: usize, p: Trajec
         }
         let mut pick = || grid.cell_of(rng.random_range(-lim..lim), rng.random_range(-lim..lim));
         let (start, goal) = (pick(), pick());
-        if !grid.free(start) || !grid.free(goal) || grid.heuristic(start, goal) < (p.min_length_m * 1000.0) as u64 {
+        if !grid.free(start)
+            || !grid.free(goal)
+            || grid.heuristic(start, goal) < (p.min_length_m * 1000.0) as u64
+        {
             continue;
         }
         let Some((cells, _)) = astar(

@@ -3,10 +3,10 @@
 
 use crate::config::Config;
 use crate::eval::scores::MeanSd;
+use crate::eval::split::{random_pose, split_scan};
 use crate::gp::hyper::{fit_hyperparameters, HyperBounds};
 use crate::gp::likelihood::TrainingSet;
 use crate::gp::Kernel;
-use crate::eval::split::{random_pose, split_scan};
 use crate::map::local::{hyper_sample, ScanInput};
 use anyhow::Result;
 use rand::SeedableRng;

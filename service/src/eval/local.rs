@@ -9,7 +9,7 @@ use crate::gp::hyper::{fit_hyperparameters, HyperBounds, HyperFit};
 use crate::gp::likelihood::TrainingSet;
 use crate::gp::{JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
-use crate::map::local::{hyper_sample, LocalRangeMap, MapParams, PriorKind};
+use crate::map::local::{hyper_sample, LocalRangeMap, MapParams, PriorKind, RangeTarget};
 use crate::map::tiles::Tiling;
 use anyhow::{Context, Result};
 use rand::SeedableRng;
@@ -82,6 +82,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
         prior: PriorKind::FlatGround {
             sensor_height_m: ScannerPreset::seed000().mount_height_m,
         },
+        target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
     }
 }
@@ -96,7 +97,10 @@ fn world_points(scan: &SplitScan) -> (Vec<[f64; 3]>, Vec<f64>) {
         .map(|r| {
             let w = t.pose.rotation * rangegp_sim::sensor::direction(r.inclination, r.azimuth);
             let p = s + w * r.range;
-            ([p.x, p.y, p.z], (t.range_noise_per_m * r.range).powi(2) + NUGGET_M2)
+            (
+                [p.x, p.y, p.z],
+                (t.range_noise_per_m * r.range).powi(2) + NUGGET_M2,
+            )
         })
         .unzip()
 }
@@ -108,8 +112,8 @@ fn bounds() -> HyperBounds {
     }
 }
 
-/// Per-scan optima of both models on one tuning scan.
-fn tune(scan: &SplitScan) -> Result<(HyperFit, HyperFit)> {
+/// Per-scan optima of both models (range GP, elevation GP) on one tuning scan.
+pub fn tune(scan: &SplitScan) -> Result<(HyperFit, HyperFit)> {
     let start = Kernel::matern32(START.0, START.1);
     let sample = hyper_sample(&scan.train, &sphere_params(start), usize::MAX);
     let range = fit_hyperparameters(&start, sample.as_training_set(), bounds(), 100)?;
@@ -217,13 +221,20 @@ pub fn run_local(terrain: &Heightmap, opts: &LocalOptions) -> Result<LocalReport
         })
         .collect::<Result<_>>()?;
     bar.finish_and_clear();
-    let row = |variance: MeanSd, length_scale: MeanSd, pick: fn(&Scored) -> &[Sample], k: usize| -> Result<ModelRow> {
+    let row = |variance: MeanSd,
+               length_scale: MeanSd,
+               pick: fn(&Scored) -> &[Sample],
+               k: usize|
+     -> Result<ModelRow> {
         let per_scan: Vec<f64> = scored
             .iter()
             .filter_map(|s| Scores::of(pick(s)).map(|sc| sc.rmse))
             .collect();
         let all: Vec<Sample> = scored.iter().flat_map(|s| pick(s).iter().copied()).collect();
-        let sigmas: Vec<[f64; 3]> = scored.iter().flat_map(|s| s.range_sigma.iter().copied()).collect();
+        let sigmas: Vec<[f64; 3]> = scored
+            .iter()
+            .flat_map(|s| s.range_sigma.iter().copied())
+            .collect();
         let mean_axis = |a: usize| sigmas.iter().map(|s| s[a]).sum::<f64>() / sigmas.len().max(1) as f64;
         let z = Scores::of(&all).context("no held-out rays")?;
         let fit_ms: Vec<f64> = scored.iter().map(|s| s.fit_ms[k]).collect();
@@ -260,11 +271,35 @@ pub fn print_local(r: &LocalReport) {
     let line = |name: &str, a: String, b: String, pa: &str, pb: &str| {
         println!("  {name:<24}  {a:<20}  {b:<20}  | {pa:<17}  {pb}");
     };
-    line("kernel scalar σ²", pair(&r.range.variance), pair(&r.elevation.variance), "2.302 (0.980)", "0.0842 (0.0497)");
-    line("length scale ℓ", pair(&r.range.length_scale), pair(&r.elevation.length_scale), "1.206 (0.608)", "18.102 (12.682)");
+    line(
+        "kernel scalar σ²",
+        pair(&r.range.variance),
+        pair(&r.elevation.variance),
+        "2.302 (0.980)",
+        "0.0842 (0.0497)",
+    );
+    line(
+        "length scale ℓ",
+        pair(&r.range.length_scale),
+        pair(&r.elevation.length_scale),
+        "1.206 (0.608)",
+        "18.102 (12.682)",
+    );
     let geo = |m: &MeanSd| format!("{:.4}", m.geometric_mean);
-    line("σ² used (geom. mean)", geo(&r.range.variance), geo(&r.elevation.variance), "", "");
-    line("ℓ used (geom. mean)", geo(&r.range.length_scale), geo(&r.elevation.length_scale), "", "");
+    line(
+        "σ² used (geom. mean)",
+        geo(&r.range.variance),
+        geo(&r.elevation.variance),
+        "",
+        "",
+    );
+    line(
+        "ℓ used (geom. mean)",
+        geo(&r.range.length_scale),
+        geo(&r.elevation.length_scale),
+        "",
+        "",
+    );
     line(
         "ℓ coeff. of variation",
         format!("{:.3}", r.range.length_scale_cv),
@@ -272,11 +307,43 @@ pub fn print_local(r: &LocalReport) {
         "0.504",
         "0.701",
     );
-    line("RMSE z per scan", pair(&r.range.rmse_z_per_scan), pair(&r.elevation.rmse_z_per_scan), "0.0121 (0.0048)", "0.0085 (0.0021)");
-    line("mean σx", format!("{:.4}", r.range.mean_sigma_xyz[0]), "—".into(), "0.0603", "—");
-    line("mean σy", format!("{:.4}", r.range.mean_sigma_xyz[1]), "—".into(), "0.0620", "—");
-    line("mean σz", format!("{:.4}", r.range.mean_sigma_xyz[2]), format!("{:.4}", r.elevation.mean_sigma_xyz[2]), "0.0169", "0.0890");
-    let s = |name: &str, f: fn(&Scores) -> f64| line(name, format!("{:.4}", f(&r.range.z)), format!("{:.4}", f(&r.elevation.z)), "", "");
+    line(
+        "RMSE z per scan",
+        pair(&r.range.rmse_z_per_scan),
+        pair(&r.elevation.rmse_z_per_scan),
+        "0.0121 (0.0048)",
+        "0.0085 (0.0021)",
+    );
+    line(
+        "mean σx",
+        format!("{:.4}", r.range.mean_sigma_xyz[0]),
+        "—".into(),
+        "0.0603",
+        "—",
+    );
+    line(
+        "mean σy",
+        format!("{:.4}", r.range.mean_sigma_xyz[1]),
+        "—".into(),
+        "0.0620",
+        "—",
+    );
+    line(
+        "mean σz",
+        format!("{:.4}", r.range.mean_sigma_xyz[2]),
+        format!("{:.4}", r.elevation.mean_sigma_xyz[2]),
+        "0.0169",
+        "0.0890",
+    );
+    let s = |name: &str, f: fn(&Scores) -> f64| {
+        line(
+            name,
+            format!("{:.4}", f(&r.range.z)),
+            format!("{:.4}", f(&r.elevation.z)),
+            "",
+            "",
+        )
+    };
     s("pooled RMSE z", |z| z.rmse);
     s("median |err| z", |z| z.median_abs);
     s("L∞ z", |z| z.max_abs);
@@ -284,5 +351,11 @@ pub fn print_local(r: &LocalReport) {
     s("coverage 68 %", |z| z.coverage68);
     s("coverage 95 %", |z| z.coverage95);
     s("AUSE (MAE, m)", |z| z.ause);
-    line("fit per scan, ms", format!("{:.2}", r.range.fit_ms), format!("{:.2}", r.elevation.fit_ms), "", "");
+    line(
+        "fit per scan, ms",
+        format!("{:.2}", r.range.fit_ms),
+        format!("{:.2}", r.elevation.fit_ms),
+        "",
+        "",
+    );
 }

@@ -92,13 +92,23 @@ impl Scores {
             return None;
         }
         for s in samples {
-            assert!(s.sd.is_finite() && s.sd > 0.0, "predicted sd must be positive, got {}", s.sd);
+            assert!(
+                s.sd.is_finite() && s.sd > 0.0,
+                "predicted sd must be positive, got {}",
+                s.sd
+            );
         }
         let n = samples.len() as f64;
         let errs: Vec<f64> = samples.iter().map(|s| (s.mean - s.truth).abs()).collect();
         let mut sorted = errs.clone();
         sorted.sort_by(f64::total_cmp);
-        let within = |k: f64| samples.iter().filter(|s| (s.mean - s.truth).abs() <= k * s.sd).count() as f64 / n;
+        let within = |k: f64| {
+            samples
+                .iter()
+                .filter(|s| (s.mean - s.truth).abs() <= k * s.sd)
+                .count() as f64
+                / n
+        };
         let nlpd = samples
             .iter()
             .map(|s| {

@@ -75,7 +75,11 @@ pub fn split_scan<S: Surface + ?Sized, R: Rng>(
         })
         .collect();
     // Ring-major order, as a driver delivers them.
-    train.sort_by(|a, b| (a.inclination, a.azimuth).partial_cmp(&(b.inclination, b.azimuth)).unwrap_or(std::cmp::Ordering::Equal));
+    train.sort_by(|a, b| {
+        (a.inclination, a.azimuth)
+            .partial_cmp(&(b.inclination, b.azimuth))
+            .unwrap_or(std::cmp::Ordering::Equal)
+    });
     SplitScan {
         train: ScanInput {
             publisher_id: 0,
@@ -92,7 +96,12 @@ pub fn split_scan<S: Surface + ?Sized, R: Rng>(
 
 /// A level seed-000 pose at a uniformly random place at least `margin_m` inside the map edge,
 /// with a random heading.
-pub fn random_pose<R: Rng>(terrain: &rangegp_sim::Heightmap, margin_m: f64, mount_height_m: f64, rng: &mut R) -> Isometry3<f64> {
+pub fn random_pose<R: Rng>(
+    terrain: &rangegp_sim::Heightmap,
+    margin_m: f64,
+    mount_height_m: f64,
+    rng: &mut R,
+) -> Isometry3<f64> {
     let lim = terrain.half_extent() - margin_m;
     let (x, y) = (rng.random_range(-lim..lim), rng.random_range(-lim..lim));
     let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);

@@ -5,11 +5,12 @@ use super::kernel::Kernel;
 use faer::linalg::triangular_solve::{solve_lower_triangular_in_place, solve_upper_triangular_in_place};
 use faer::{Mat, Par};
 
-/// A fitted exact GP over points in R³ (the range sphere), targets already de-meaned.
+/// A fitted exact GP over points in R^D (D = 3 for range maps and elevation tiles), targets
+/// already de-meaned.
 #[derive(Debug, Clone)]
-pub struct ExactGp {
+pub struct ExactGp<const D: usize = 3> {
     kernel: Kernel,
-    inputs: Vec<[f64; 3]>,
+    inputs: Vec<[f64; D]>,
     /// Lower Cholesky factor of K + Σ, column-major, n × n.
     factor_cols: Vec<f64>,
     alpha: Vec<f64>,
@@ -17,14 +18,14 @@ pub struct ExactGp {
     log_marginal_likelihood: f64,
 }
 
-impl ExactGp {
+impl<const D: usize> ExactGp<D> {
     /// Fits the GP to `targets` (residuals from the prior mean) at `inputs`, with per-point noise
     /// variances `noise_var` (the heteroscedastic diagonal Σ).
     ///
     /// Panics if the three slices differ in length or are empty (caller's misuse).
     pub fn fit(
         kernel: Kernel,
-        inputs: Vec<[f64; 3]>,
+        inputs: Vec<[f64; D]>,
         targets: &[f64],
         noise_var: &[f64],
         jitter: JitterPolicy,
@@ -91,7 +92,7 @@ impl ExactGp {
     }
 
     /// Posterior mean of the residual at `x`: k*ᵀ α (O(n)).
-    pub fn mean(&self, x: &[f64; 3]) -> f64 {
+    pub fn mean(&self, x: &[f64; D]) -> f64 {
         self.inputs
             .iter()
             .zip(&self.alpha)
@@ -103,7 +104,7 @@ impl ExactGp {
     ///
     /// Column-oriented forward substitution over L's contiguous columns (an axpy per column,
     /// which vectorises), into one scratch vector: no matrix is allocated per query.
-    pub fn mean_variance(&self, x: &[f64; 3]) -> (f64, f64) {
+    pub fn mean_variance(&self, x: &[f64; D]) -> (f64, f64) {
         let n = self.inputs.len();
         let mut v: Vec<f64> = self.inputs.iter().map(|xi| self.kernel.between(x, xi)).collect();
         let mean = v.iter().zip(&self.alpha).map(|(k, a)| k * a).sum();
@@ -126,10 +127,10 @@ impl ExactGp {
     }
 }
 
-impl ExactGp {
+impl<const D: usize> ExactGp<D> {
     /// Posterior means and latent variances at many points: one multi-column triangular solve
     /// per block of 256 queries (BLAS-3), for grids and benchmarks.
-    pub fn predict_batch(&self, xs: &[[f64; 3]]) -> (Vec<f64>, Vec<f64>) {
+    pub fn predict_batch(&self, xs: &[[f64; D]]) -> (Vec<f64>, Vec<f64>) {
         let n = self.inputs.len();
         let mut means = Vec::with_capacity(xs.len());
         let mut vars = Vec::with_capacity(xs.len());

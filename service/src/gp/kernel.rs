@@ -1,4 +1,5 @@
-//! Covariance kernels over points of R³ (the range sphere or the ground plane), with analytic
+//! Covariance kernels over points of R^D (kernel inputs of the range maps, the ground plane, the
+//! pose-augmented aggregate), with analytic
 //! derivatives with respect to log σ² and log ℓ for marginal-likelihood optimisation.
 
 use serde::{Deserialize, Serialize};
@@ -34,16 +35,19 @@ pub struct Kernel {
     pub length_scale: f64,
 }
 
-/// Euclidean distance between two 3-vectors.
+/// Euclidean distance between two points of R^D.
 #[inline]
-pub fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    let (dx, dy, dz) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
-    (dx * dx + dy * dy + dz * dz).sqrt()
+pub fn distance<const D: usize>(a: &[f64; D], b: &[f64; D]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum::<f64>()
+        .sqrt()
 }
 
 #[inline]
-fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+fn dot<const D: usize>(a: &[f64; D], b: &[f64; D]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 impl Kernel {
@@ -82,7 +86,7 @@ impl Kernel {
 
     /// Prior variance at `x`, k(x, x).
     #[inline]
-    pub fn diagonal(&self, x: &[f64; 3]) -> f64 {
+    pub fn diagonal<const D: usize>(&self, x: &[f64; D]) -> f64 {
         match self.family {
             KernelFamily::ArcSine => self.between(x, x),
             _ => self.variance,
@@ -91,7 +95,7 @@ impl Kernel {
 
     /// Covariance between two points.
     #[inline]
-    pub fn between(&self, a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    pub fn between<const D: usize>(&self, a: &[f64; D], b: &[f64; D]) -> f64 {
         match self.family {
             KernelFamily::ArcSine => self.variance * self.arcsine_z(a, b).0.asin(),
             _ => self.variance * self.unit_stationary(distance(a, b)).0,
@@ -100,7 +104,7 @@ impl Kernel {
 
     /// Covariance and its derivatives with respect to (log σ², log ℓ).
     #[inline]
-    pub fn with_gradient(&self, a: &[f64; 3], b: &[f64; 3]) -> (f64, [f64; 2]) {
+    pub fn with_gradient<const D: usize>(&self, a: &[f64; D], b: &[f64; D]) -> (f64, [f64; 2]) {
         match self.family {
             KernelFamily::ArcSine => {
                 let (z, dz_dlog_ell) = self.arcsine_z(a, b);
@@ -147,7 +151,7 @@ impl Kernel {
 
     /// The arcsine kernel's argument z and dz/d log ℓ.
     #[inline]
-    fn arcsine_z(&self, a: &[f64; 3], b: &[f64; 3]) -> (f64, f64) {
+    fn arcsine_z<const D: usize>(&self, a: &[f64; D], b: &[f64; D]) -> (f64, f64) {
         let lambda = 1.0 / (self.length_scale * self.length_scale);
         let (ab, aa, bb) = (dot(a, b), dot(a, a), dot(b, b));
         let num = 2.0 * (1.0 + lambda * ab);

@@ -30,10 +30,23 @@ impl ElevationGp {
         })
     }
 
+    /// Predicted height at (x, y), mean only (O(n)).
+    pub fn height(&self, x: f64, y: f64) -> f64 {
+        self.mean_z + self.gp.mean(&[x, y, 0.0])
+    }
+
     /// Predicted height and its latent variance at (x, y).
     pub fn predict(&self, x: f64, y: f64) -> (f64, f64) {
         let (m, v) = self.gp.mean_variance(&[x, y, 0.0]);
         (self.mean_z + m, v)
+    }
+
+    /// Heights and latent variances at many (x, y) (blocked triangular solves).
+    pub fn predict_batch(&self, xy: &[(f64, f64)]) -> (Vec<f64>, Vec<f64>) {
+        let xs: Vec<[f64; 3]> = xy.iter().map(|&(x, y)| [x, y, 0.0]).collect();
+        let (mut means, vars) = self.gp.predict_batch(&xs);
+        means.iter_mut().for_each(|m| *m += self.mean_z);
+        (means, vars)
     }
 
     /// The underlying GP (for likelihood-based hyperparameter fits).

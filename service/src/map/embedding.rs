@@ -21,7 +21,10 @@ pub struct Embedding {
 impl Embedding {
     /// Footprints of `prior`, capped at `radius_m` (panics on a non-positive radius: misuse).
     pub fn new(prior: Prior, radius_m: f64) -> Self {
-        assert!(radius_m.is_finite() && radius_m > 0.0, "embedding radius must be positive");
+        assert!(
+            radius_m.is_finite() && radius_m > 0.0,
+            "embedding radius must be positive"
+        );
         Self { prior, radius_m }
     }
 
@@ -36,10 +39,7 @@ impl Embedding {
         let u = sphere::to_sphere(inclination, azimuth, 1.0);
         let r = match self.prior {
             Prior::ConstantRange { .. } => self.radius_m,
-            Prior::FlatGround { .. } => self
-                .prior
-                .range(&nalgebra::Vector3::from(u))
-                .min(self.radius_m),
+            Prior::FlatGround { .. } => self.prior.range(&nalgebra::Vector3::from(u)).min(self.radius_m),
         };
         [u[0] * r, u[1] * r, u[2] * r]
     }

@@ -3,6 +3,7 @@
 use super::embedding::Embedding;
 use super::fov::FieldOfView;
 use super::prior::Prior;
+use super::root;
 use super::tiles::{TiledGp, Tiling, TrainingRay};
 use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
 use nalgebra::{Isometry3, Vector3};
@@ -53,6 +54,41 @@ pub enum PriorKind {
     },
 }
 
+/// The quantity the GP models along each ray.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RangeTarget {
+    /// Range (seed 000).
+    #[default]
+    Range,
+    /// Inverse range 1/r: every plane is linear in the ray direction (1/r = n·u / d), so walls,
+    /// roofs and grazing views that bend the range steeply stay straight (MATH.md).
+    InverseRange,
+}
+
+/// Smallest inverse range a prediction is clamped to, 1/m (a 1 km ray).
+const MIN_INVERSE_RANGE: f64 = 1e-3;
+
+impl RangeTarget {
+    /// The modelled value of range `r`.
+    fn of(self, r: f64) -> f64 {
+        match self {
+            RangeTarget::Range => r,
+            RangeTarget::InverseRange => 1.0 / r,
+        }
+    }
+    /// Range of a modelled value and the factor d r / d value (for the delta method).
+    fn back(self, v: f64) -> (f64, f64) {
+        match self {
+            RangeTarget::Range => (v, 1.0),
+            RangeTarget::InverseRange => {
+                let r = 1.0 / v.max(MIN_INVERSE_RANGE);
+                (r, r * r)
+            }
+        }
+    }
+}
+
 /// Everything needed to fit a local map besides the scan.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapParams {
@@ -69,6 +105,8 @@ pub struct MapParams {
     pub tiling: Tiling,
     /// Prior mean.
     pub prior: PriorKind,
+    /// What the GP models along a ray.
+    pub target: RangeTarget,
     /// Cholesky jitter policy.
     pub jitter: JitterPolicy,
 }
@@ -115,13 +153,11 @@ pub struct LocalRangeMap {
     pub stamp_ns: u64,
     pose: Isometry3<f64>,
     prior: Prior,
+    target: RangeTarget,
     max_range: f64,
     fov: FieldOfView,
     gp: TiledGp,
 }
-
-/// Residuals of this size (metres) and below count as "on the surface".
-const ROOT_TOLERANCE_M: f64 = 1e-5;
 
 impl LocalRangeMap {
     /// Fits the range GP of `scan` (seed 000 eqs. 9–10 with a heteroscedastic diagonal).
@@ -145,6 +181,7 @@ impl LocalRangeMap {
             stamp_ns: scan.stamp_ns,
             pose: scan.pose,
             prior,
+            target: params.target,
             max_range: scan.max_range_m,
             fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
             gp,
@@ -176,7 +213,8 @@ impl LocalRangeMap {
         let (resid, var) = self.gp.mean_variance(inclination, azimuth);
         let u = unit(inclination, azimuth);
         let a = self.prior.amplitude(&u);
-        (self.prior.range(&u) + a * resid, a * a * var)
+        let (range, slope) = self.target.back(self.target.of(self.prior.range(&u)) + a * resid);
+        (range, a * a * var * slope * slope)
     }
 
     /// The predicted surface point along sensor direction (θ, φ), in the map frame, with its
@@ -197,7 +235,9 @@ impl LocalRangeMap {
     /// Mean range only (O(n)).
     fn mean_range(&self, inclination: f64, azimuth: f64) -> f64 {
         let u = unit(inclination, azimuth);
-        self.prior.range(&u) + self.prior.amplitude(&u) * self.gp.mean(inclination, azimuth)
+        let value = self.target.of(self.prior.range(&u))
+            + self.prior.amplitude(&u) * self.gp.mean(inclination, azimuth);
+        self.target.back(value).0
     }
 
     /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
@@ -220,73 +260,11 @@ impl LocalRangeMap {
             .map(|(inc, az, dist)| dist - self.mean_range(inc, az))
     }
 
-    /// First surface crossing along `point(t)` for t in [t0, t1], sampled at `samples` points
-    /// inside the field of view and refined by the Illinois method.
-    fn first_crossing(
-        &self,
-        point: impl Fn(f64) -> Vector3<f64>,
-        t0: f64,
-        t1: f64,
-        samples: usize,
-    ) -> Option<f64> {
-        let mut prev: Option<(f64, f64)> = None;
-        for k in 0..=samples {
-            let t = t0 + (t1 - t0) * k as f64 / samples as f64;
-            let Some(g) = self.gap(&point(t)) else {
-                prev = None;
-                continue;
-            };
-            if g >= 0.0 {
-                return match prev {
-                    Some((tp, gp)) => self.refine(&point, (tp, gp), (t, g)),
-                    None => None,
-                };
-            }
-            prev = Some((t, g));
-        }
-        None
-    }
-
-    fn refine(
-        &self,
-        point: &impl Fn(f64) -> Vector3<f64>,
-        (mut ta, mut ga): (f64, f64),
-        (mut tb, mut gb): (f64, f64),
-    ) -> Option<f64> {
-        let mut side = 0i8;
-        for _ in 0..60 {
-            let t = (ta * gb - tb * ga) / (gb - ga);
-            let g = self.gap(&point(t))?;
-            if g.abs() < ROOT_TOLERANCE_M * 1e-2 || (tb - ta).abs() < ROOT_TOLERANCE_M {
-                return Some(t);
-            }
-            if g < 0.0 {
-                ta = t;
-                ga = g;
-                if side == -1 {
-                    gb *= 0.5;
-                }
-                side = -1;
-            } else {
-                tb = t;
-                gb = g;
-                if side == 1 {
-                    ga *= 0.5;
-                }
-                side = 1;
-            }
-        }
-        Some(0.5 * (ta + tb))
-    }
-
-    /// Variance of a root of `gap(point(t))` by the delta method: s_r² / (∂gap/∂t)².
-    fn root_variance(&self, point: &impl Fn(f64) -> Vector3<f64>, t: f64) -> Option<f64> {
-        let p = point(t);
-        let (inc, az, _) = self.look_at(&p)?;
+    /// Delta-method variance of the root `t` (at map point `p`) of `gap`.
+    fn root_variance(&self, gap: impl Fn(f64) -> Option<f64>, p: &Vector3<f64>, t: f64) -> Option<f64> {
+        let (inc, az, _) = self.look_at(p)?;
         let (_, var_r) = self.predict_range(inc, az);
-        let h = 1e-4;
-        let slope = (self.gap(&point(t + h))? - self.gap(&point(t - h))?) / (2.0 * h);
-        (slope.abs() > 1e-6).then(|| var_r / (slope * slope))
+        root::root_variance(gap, t, var_r)
     }
 
     /// Surface height at map (x, y): the first crossing of the vertical line from above
@@ -311,9 +289,9 @@ impl LocalRangeMap {
         }
         let step = 2.0 * half / coarse as f64;
         let (top, bottom) = (top? + step, bottom? - step);
-        let down = |t: f64| point(top - t);
-        let t = self.first_crossing(down, 0.0, top - bottom, 24)?;
-        let var = self.root_variance(&down, t)?;
+        let gap = |t: f64| self.gap(&point(top - t));
+        let t = root::first_crossing(gap, 0.0, top - bottom, 24)?;
+        let var = self.root_variance(gap, &point(top - t), t)?;
         Some(HeightEstimate { z: top - t, var })
     }
 
@@ -322,8 +300,9 @@ impl LocalRangeMap {
     pub fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<RayEstimate> {
         let point = |t: f64| origin + dir * t;
         let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
-        if let Some(t) = self.first_crossing(point, 0.0, max_range, samples) {
-            let var = self.root_variance(&point, t)?;
+        let gap = |t: f64| self.gap(&point(t));
+        if let Some(t) = root::first_crossing(gap, 0.0, max_range, samples) {
+            let var = self.root_variance(gap, &point(t), t)?;
             let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
             return Some(RayEstimate {
                 range: Some(t),
@@ -377,11 +356,15 @@ fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize
         .map(|r| {
             let u = unit(r.inclination, r.azimuth);
             let a = prior.amplitude(&u);
+            let t = params.target;
+            // d value / d r at the measurement, for the noise through the transform.
+            let slope = 1.0 / t.back(t.of(r.range)).1;
             TrainingRay {
                 inclination: r.inclination,
                 azimuth: r.azimuth,
-                residual: (r.range - prior.range(&u)) / a,
-                noise_var: ((scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2) / (a * a),
+                residual: (t.of(r.range) - t.of(prior.range(&u))) / a,
+                noise_var: ((scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2)
+                    * (slope / a).powi(2),
             }
         })
         .collect()
@@ -460,46 +443,9 @@ pub fn normal_cdf(x: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::test_support::{params, scan_of};
     use nalgebra::{Translation3, UnitQuaternion};
-    use rand::SeedableRng;
-    use rangegp_sim::{simulate_scan, CraterParams, Heightmap, ScannerPreset};
-
-    pub(crate) fn params() -> MapParams {
-        MapParams {
-            kernel: Kernel::matern32(5e-4, 0.97),
-            sphere_radius_m: 10.0,
-            nugget_m2: 1e-6,
-            max_training_rays: 2000,
-            tiling: Tiling::default(),
-            prior: PriorKind::FlatGround {
-                sensor_height_m: 0.75,
-            },
-            jitter: JitterPolicy::default(),
-        }
-    }
-
-    fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
-        let preset = ScannerPreset::seed000();
-        let rays = simulate_scan(terrain, &pose, &preset, &mut rand_pcg::Pcg64::seed_from_u64(5));
-        ScanInput {
-            publisher_id: 1,
-            sequence: 1,
-            stamp_ns: 0,
-            pose,
-            max_range_m: preset.max_range_m,
-            range_noise_per_m: preset.range_noise_per_m,
-            rays: rays
-                .iter()
-                .filter_map(|r| {
-                    r.measured_range_m.map(|range| RayObservation {
-                        inclination: r.inclination_rad,
-                        azimuth: r.azimuth_rad,
-                        range,
-                    })
-                })
-                .collect(),
-        }
-    }
+    use rangegp_sim::{CraterParams, Heightmap};
 
     #[test]
     fn flat_ground_is_recovered_exactly_and_unseen_places_are_refused() {

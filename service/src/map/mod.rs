@@ -1,11 +1,15 @@
 //! Maps built from scans: the per-scan local range map, its prior, the rolling window, queries.
 
+pub mod aggregate;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;
 pub mod local;
 pub mod prior;
 pub mod query;
+pub mod root;
+#[cfg(test)]
+mod test_support;
 pub mod tiles;
 pub mod window;
 

@@ -349,8 +349,14 @@ mod tests {
         let targets: Vec<f64> = train.iter().map(|r| r.residual).collect();
         let noise: Vec<f64> = train.iter().map(|r| r.noise_var).collect();
         let exact = ExactGp::fit(kernel, inputs, &targets, &noise, JitterPolicy::default()).expect("exact");
-        let tiled =
-            TiledGp::fit(&train, kernel, Embedding::sphere(10.0), Tiling::default(), JitterPolicy::default()).expect("tiled");
+        let tiled = TiledGp::fit(
+            &train,
+            kernel,
+            Embedding::sphere(10.0),
+            Tiling::default(),
+            JitterPolicy::default(),
+        )
+        .expect("tiled");
         assert!(tiled.tiles() >= 12, "only {} tiles", tiled.tiles());
         let e = rmse(&test, |t, p| exact.mean(&sphere::to_sphere(t, p, 10.0)));
         let t = rmse(&test, |th, p| tiled.mean(th, p));

@@ -1,0 +1,383 @@
+//! The project's aggregate: a world-frame grid of cells, each holding the height of the ground
+//! at its centre as predicted by the scans' range GPs (root-finding down the vertical line,
+//! delta-method variance), fused across scans by inverse variance — the per-cell elevation
+//! filter (seed 001 keeps the highest point per cell, a filter against vegetation that this
+//! terrain does not have; a variance-weighted mean also shrinks the noise). Cells are grouped
+//! into square tiles; each tile is an exact elevation GP (Matérn + the cells' fused variances as
+//! known heteroscedastic noise, seed 003's two-stage idea) on the cells of the tile grown by a
+//! margin, so a tile holds a bounded number of points. A new scan refits only the tiles whose
+//! cells it changed. Predictions blend the covering tiles with a partition of unity (no seams).
+
+use super::{Aggregate, AggregateError};
+use crate::gp::{JitterPolicy, Kernel};
+use crate::map::elevation_gp::ElevationGp;
+use crate::map::local::{HeightEstimate, LocalRangeMap, ScanInput};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeSet, HashMap};
+
+/// Settings of the world aggregate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WorldParams {
+    /// Cell side, metres.
+    pub cell_m: f64,
+    /// Tile side, cells.
+    pub tile_cells: i32,
+    /// Margin each tile's experts train on beyond its side, cells.
+    pub margin_cells: i32,
+    /// Kernel variance of the elevation experts, m².
+    pub kernel_variance: f64,
+    /// Kernel length scale of the elevation experts, metres.
+    pub length_scale: f64,
+    /// Variance added to every cell's, m².
+    pub nugget_m2: f64,
+    /// Scan predictions less certain than this (σ, metres) are not fused.
+    pub max_cell_sd_m: f64,
+    /// A query farther than this from every fused cell is unobserved, metres.
+    pub max_gap_m: f64,
+}
+
+impl Default for WorldParams {
+    fn default() -> Self {
+        Self {
+            cell_m: 0.25,
+            tile_cells: 10,
+            margin_cells: 2,
+            kernel_variance: 4e-4,
+            length_scale: 0.6,
+            nugget_m2: 1e-6,
+            max_cell_sd_m: 0.1,
+            max_gap_m: 0.75,
+        }
+    }
+}
+
+/// A fused cell: the height at its centre and its variance.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Cell {
+    /// Height, metres.
+    pub z: f64,
+    /// Variance, m².
+    pub var: f64,
+    /// Scans fused into it.
+    pub scans: u32,
+}
+
+/// What a checkpoint of the aggregate holds (tiles are refitted from the cells on restore).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WorldState {
+    /// Settings.
+    pub params: WorldParams,
+    /// Cells by (column, row) index.
+    pub cells: Vec<((i32, i32), Cell)>,
+}
+
+/// The world-frame tiled elevation aggregate.
+#[derive(Debug, Clone)]
+pub struct WorldAggregate {
+    params: WorldParams,
+    cells: HashMap<(i32, i32), Cell>,
+    tiles: HashMap<(i32, i32), ElevationGp>,
+    refits: u64,
+}
+
+impl WorldAggregate {
+    /// An empty aggregate (panics on non-positive sizes: caller's misuse).
+    pub fn new(params: WorldParams) -> Self {
+        assert!(
+            params.cell_m > 0.0 && params.tile_cells > 0 && params.margin_cells >= 0,
+            "bad world-aggregate sizes"
+        );
+        Self {
+            params,
+            cells: HashMap::new(),
+            tiles: HashMap::new(),
+            refits: 0,
+        }
+    }
+
+    /// Rebuilds an aggregate from a checkpointed state, refitting every tile.
+    pub fn from_state(state: WorldState) -> Result<Self, AggregateError> {
+        let mut agg = Self::new(state.params);
+        agg.cells = state.cells.into_iter().collect();
+        let all: BTreeSet<(i32, i32)> = agg.cells.keys().flat_map(|&c| agg.tiles_covering(c)).collect();
+        agg.refit(all)?;
+        Ok(agg)
+    }
+
+    /// The state to checkpoint (cells sorted by index, so equal maps give equal bytes).
+    pub fn state(&self) -> WorldState {
+        let mut cells: Vec<((i32, i32), Cell)> = self.cells.iter().map(|(&k, &v)| (k, v)).collect();
+        cells.sort_by_key(|&(k, _)| k);
+        WorldState {
+            params: self.params,
+            cells,
+        }
+    }
+
+    /// Fitted tiles.
+    pub fn tiles(&self) -> usize {
+        self.tiles.len()
+    }
+
+    /// Tile fits since creation (a scan refits only the tiles it touched).
+    pub fn refits(&self) -> u64 {
+        self.refits
+    }
+
+    /// The fused cells, by index.
+    pub fn cells(&self) -> &HashMap<(i32, i32), Cell> {
+        &self.cells
+    }
+
+    fn centre(&self, (i, j): (i32, i32)) -> (f64, f64) {
+        (
+            (i as f64 + 0.5) * self.params.cell_m,
+            (j as f64 + 0.5) * self.params.cell_m,
+        )
+    }
+
+    fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
+        (
+            (x / self.params.cell_m).floor() as i32,
+            (y / self.params.cell_m).floor() as i32,
+        )
+    }
+
+    fn tile_of(&self, (i, j): (i32, i32)) -> (i32, i32) {
+        (
+            i.div_euclid(self.params.tile_cells),
+            j.div_euclid(self.params.tile_cells),
+        )
+    }
+
+    /// Tiles whose grown box contains cell `c`.
+    fn tiles_covering(&self, c: (i32, i32)) -> impl Iterator<Item = (i32, i32)> + '_ {
+        let (ti, tj) = self.tile_of(c);
+        let (n, m) = (self.params.tile_cells, self.params.margin_cells);
+        let inside = move |v: i32, t: i32| v >= t * n - m && v < (t + 1) * n + m;
+        (-1..=1)
+            .flat_map(move |di| (-1..=1).map(move |dj| (ti + di, tj + dj)))
+            .filter(move |&(a, b)| inside(c.0, a) && inside(c.1, b))
+    }
+
+    /// Refits the experts of `tiles` in parallel from their cells.
+    fn refit(&mut self, tiles: BTreeSet<(i32, i32)>) -> Result<(), AggregateError> {
+        let (n, m) = (self.params.tile_cells, self.params.margin_cells);
+        let kernel = Kernel::matern32(self.params.kernel_variance, self.params.length_scale);
+        let fitted: Vec<((i32, i32), Option<ElevationGp>)> = tiles
+            .into_par_iter()
+            .map(|(ti, tj)| {
+                let mut points = Vec::new();
+                let mut noise = Vec::new();
+                for i in ti * n - m..(ti + 1) * n + m {
+                    for j in tj * n - m..(tj + 1) * n + m {
+                        if let Some(c) = self.cells.get(&(i, j)) {
+                            let (x, y) = self.centre((i, j));
+                            points.push([x, y, c.z]);
+                            noise.push(c.var + self.params.nugget_m2);
+                        }
+                    }
+                }
+                if points.is_empty() {
+                    return Ok(((ti, tj), None));
+                }
+                let gp = ElevationGp::fit(&points, &noise, kernel, JitterPolicy::default())?;
+                Ok(((ti, tj), Some(gp)))
+            })
+            .collect::<Result<_, AggregateError>>()?;
+        self.refits += fitted.len() as u64;
+        for (key, gp) in fitted {
+            match gp {
+                Some(gp) => self.tiles.insert(key, gp),
+                None => self.tiles.remove(&key),
+            };
+        }
+        Ok(())
+    }
+
+    /// Partition-of-unity weight of tile `t` at (x, y): 1 inside the tile shrunk by the margin,
+    /// falling linearly to 0 at the tile grown by the margin.
+    fn weight(&self, (ti, tj): (i32, i32), x: f64, y: f64) -> f64 {
+        let side = self.params.tile_cells as f64 * self.params.cell_m;
+        let margin = (self.params.margin_cells as f64 * self.params.cell_m).max(1e-9);
+        let ramp = |v: f64, t: i32| {
+            let (lo, hi) = (t as f64 * side, (t + 1) as f64 * side);
+            (((v - lo + margin) / (2.0 * margin)).min((hi + margin - v) / (2.0 * margin))).clamp(0.0, 1.0)
+        };
+        ramp(x, ti) * ramp(y, tj)
+    }
+
+    fn near_a_cell(&self, x: f64, y: f64) -> bool {
+        let (ci, cj) = self.cell_of(x, y);
+        let reach = (self.params.max_gap_m / self.params.cell_m).ceil() as i32;
+        let r2 = self.params.max_gap_m * self.params.max_gap_m;
+        (-reach..=reach).any(|di| {
+            (-reach..=reach).any(|dj| {
+                let key = (ci + di, cj + dj);
+                let (cx, cy) = self.centre(key);
+                self.cells.contains_key(&key) && (cx - x).powi(2) + (cy - y).powi(2) <= r2
+            })
+        })
+    }
+}
+
+impl Aggregate for WorldAggregate {
+    fn name(&self) -> &'static str {
+        "world tiled elevation experts"
+    }
+
+    fn insert(&mut self, _scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
+        let s = local.sensor_position();
+        let reach = local.max_range();
+        let (lo, hi) = (
+            self.cell_of(s.x - reach, s.y - reach),
+            self.cell_of(s.x + reach, s.y + reach),
+        );
+        let candidates: Vec<(i32, i32)> = (lo.0..=hi.0)
+            .flat_map(|i| (lo.1..=hi.1).map(move |j| (i, j)))
+            .collect();
+        let max_var = self.params.max_cell_sd_m.powi(2);
+        let seen: Vec<((i32, i32), HeightEstimate)> = candidates
+            .par_iter()
+            .filter_map(|&c| {
+                let (x, y) = self.centre(c);
+                if (x - s.x).hypot(y - s.y) >= reach {
+                    return None;
+                }
+                local
+                    .elevation(x, y)
+                    .filter(|e| e.var <= max_var && e.var > 0.0)
+                    .map(|e| (c, e))
+            })
+            .collect();
+        let mut dirty = BTreeSet::new();
+        for (c, e) in seen {
+            let cell = self.cells.entry(c).or_insert(Cell {
+                z: e.z,
+                var: e.var,
+                scans: 0,
+            });
+            if cell.scans > 0 {
+                let var = 1.0 / (1.0 / cell.var + 1.0 / e.var);
+                cell.z = var * (cell.z / cell.var + e.z / e.var);
+                cell.var = var;
+            }
+            cell.scans += 1;
+            dirty.extend(self.tiles_covering(c));
+        }
+        self.refit(dirty)
+    }
+
+    fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+        if !self.near_a_cell(x, y) {
+            return None;
+        }
+        let (ti, tj) = self.tile_of(self.cell_of(x, y));
+        let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
+        for di in -1..=1 {
+            for dj in -1..=1 {
+                let t = (ti + di, tj + dj);
+                let Some(gp) = self.tiles.get(&t) else { continue };
+                let w = self.weight(t, x, y);
+                if w > 0.0 {
+                    let (m, v) = gp.predict(x, y);
+                    wsum += w;
+                    m1 += w * m;
+                    m2 += w * (v + m * m);
+                }
+            }
+        }
+        (wsum > 0.0).then(|| {
+            let z = m1 / wsum;
+            HeightEstimate {
+                z,
+                var: (m2 / wsum - z * z).max(0.0),
+            }
+        })
+    }
+
+    fn len(&self) -> usize {
+        self.cells.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::test_support::{params, scan_of};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+    use rangegp_sim::Heightmap;
+
+    fn fold(agg: &mut WorldAggregate, terrain: &Heightmap, x: f64, y: f64, heading: f64) {
+        let pose = Isometry3::from_parts(
+            Translation3::new(x, y, 0.75),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
+        );
+        let scan = scan_of(terrain, pose);
+        let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        agg.insert(&scan, &local).expect("insert");
+    }
+
+    #[test]
+    fn flat_ground_is_fused_level_and_unseen_places_are_none() {
+        let terrain = Heightmap::flat(60.0, 0.05, 0.0);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        assert!(agg.is_empty() && agg.elevation(3.0, 0.0).is_none());
+        fold(&mut agg, &terrain, 0.0, 0.0, 0.0);
+        fold(&mut agg, &terrain, 4.0, 0.0, 0.0);
+        assert!(agg.cells().values().any(|c| c.scans == 2), "overlap fused");
+        for (x, y) in [(3.0, 1.0), (6.0, -1.0), (8.0, 2.5), (11.0, 0.0)] {
+            let e = agg.elevation(x, y).expect("observed");
+            assert!(e.z.abs() < 3e-3, "z at ({x}, {y}) = {}", e.z);
+            assert!(e.var > 0.0 && e.var.sqrt() < 0.02, "σ {}", e.var.sqrt());
+        }
+        assert!(agg.elevation(-15.0, -15.0).is_none(), "never seen");
+    }
+
+    #[test]
+    fn a_scan_refits_only_the_tiles_it_touches() {
+        let terrain = Heightmap::flat(60.0, 0.05, 0.0);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        fold(&mut agg, &terrain, -20.0, 0.0, 0.0);
+        let (tiles, refits) = (agg.tiles(), agg.refits());
+        assert_eq!(refits, tiles as u64, "first scan fits each of its tiles once");
+        let before = agg.elevation(-15.0, 1.0).expect("observed");
+        // Far from the first scan: its tiles are new, the old ones untouched.
+        fold(&mut agg, &terrain, 10.0, 0.0, 0.0);
+        assert_eq!(agg.refits() - refits, (agg.tiles() - tiles) as u64);
+        assert_eq!(agg.elevation(-15.0, 1.0), Some(before));
+        // Overlapping the second scan: only some tiles refitted.
+        let refits = agg.refits();
+        fold(&mut agg, &terrain, 12.0, 0.0, 0.0);
+        let touched = agg.refits() - refits;
+        assert!(
+            touched > 0 && touched < agg.tiles() as u64,
+            "{touched} of {}",
+            agg.tiles()
+        );
+    }
+
+    #[test]
+    fn a_restored_state_answers_like_the_original() {
+        let terrain = Heightmap::flat(60.0, 0.05, 0.2);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        fold(&mut agg, &terrain, 0.0, 0.0, 0.4);
+        let state = agg.state();
+        let restored = WorldAggregate::from_state(state.clone()).expect("refit");
+        assert_eq!(restored.state(), state);
+        assert_eq!(restored.tiles(), agg.tiles());
+        let json = serde_json::to_string(&state).expect("serialise");
+        let back: WorldState = serde_json::from_str(&json).expect("deserialise");
+        let from_json = WorldAggregate::from_state(back).expect("refit");
+        for (x, y) in [(3.0, 1.0), (5.0, 3.0), (7.5, 4.0), (-20.0, 0.0)] {
+            let want = agg.elevation(x, y);
+            assert_eq!(restored.elevation(x, y), want, "at ({x}, {y})");
+            // Text floats may lose the last bit; the map must not move by more.
+            match (from_json.elevation(x, y), want) {
+                (Some(a), Some(b)) => assert!((a.z - b.z).abs() < 1e-9 && (a.var - b.var).abs() < 1e-12),
+                (a, b) => assert_eq!(a, b, "at ({x}, {y})"),
+            }
+        }
+    }
+}

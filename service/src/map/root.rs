@@ -1,0 +1,82 @@
+//! First crossing of a signed gap function along a line (negative in free space, non-negative
+//! at or behind the surface): coarse sampling, then the Illinois variant of regula falsi.
+//! Shared by every map that answers "where does this line meet the surface".
+
+/// Residuals of this size (metres) and below count as "on the surface".
+pub const ROOT_TOLERANCE_M: f64 = 1e-5;
+
+/// The first t in [t0, t1] where `gap` turns non-negative after being negative, sampled at
+/// `samples` points (a gap of `None` is "not observed" and breaks the bracket), or `None`.
+pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, samples: usize) -> Option<f64> {
+    let mut prev: Option<(f64, f64)> = None;
+    for k in 0..=samples {
+        let t = t0 + (t1 - t0) * k as f64 / samples as f64;
+        let Some(g) = gap(t) else {
+            prev = None;
+            continue;
+        };
+        if g >= 0.0 {
+            return prev.and_then(|p| refine(&gap, p, (t, g)));
+        }
+        prev = Some((t, g));
+    }
+    None
+}
+
+/// Illinois refinement of a bracket (ga < 0 ≤ gb).
+fn refine(
+    gap: &impl Fn(f64) -> Option<f64>,
+    (mut ta, mut ga): (f64, f64),
+    (mut tb, mut gb): (f64, f64),
+) -> Option<f64> {
+    let mut side = 0i8;
+    for _ in 0..60 {
+        let t = (ta * gb - tb * ga) / (gb - ga);
+        let g = gap(t)?;
+        if g.abs() < ROOT_TOLERANCE_M * 1e-2 || (tb - ta).abs() < ROOT_TOLERANCE_M {
+            return Some(t);
+        }
+        if g < 0.0 {
+            ta = t;
+            ga = g;
+            if side == -1 {
+                gb *= 0.5;
+            }
+            side = -1;
+        } else {
+            tb = t;
+            gb = g;
+            if side == 1 {
+                ga *= 0.5;
+            }
+            side = 1;
+        }
+    }
+    Some(0.5 * (ta + tb))
+}
+
+/// Variance of a root t of `gap` by the delta method, `var_at_root / (∂gap/∂t)²` (central
+/// difference); `None` where the slope vanishes or the gap is unobserved.
+pub fn root_variance(gap: impl Fn(f64) -> Option<f64>, t: f64, var_at_root: f64) -> Option<f64> {
+    let h = 1e-4;
+    let slope = (gap(t + h)? - gap(t - h)?) / (2.0 * h);
+    (slope.abs() > 1e-6).then(|| var_at_root / (slope * slope))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn finds_the_first_of_two_crossings_with_its_delta_variance() {
+        // gap(t) = sin(t) − 0.5 meets zero first at π/6.
+        let gap = |t: f64| Some(t.sin() - 0.5);
+        let t = first_crossing(gap, -1.0, 3.0, 40).expect("crossing");
+        assert!((t - std::f64::consts::FRAC_PI_6).abs() < 1e-6, "{t}");
+        let v = root_variance(gap, t, 0.01).expect("slope");
+        let slope = std::f64::consts::FRAC_PI_6.cos();
+        assert!((v - 0.01 / (slope * slope)).abs() < 1e-8);
+        assert!(first_crossing(|t: f64| Some(t - 10.0), 0.0, 5.0, 10).is_none());
+        assert!(first_crossing(|t: f64| (t < 1.0).then_some(t - 2.0), 0.0, 5.0, 10).is_none());
+    }
+}

@@ -1,0 +1,48 @@
+//! Shared fixtures of the map tests: the seed-000 map parameters and a simulated scan.
+
+use super::local::{MapParams, PriorKind, RangeTarget, RayObservation, ScanInput};
+use super::tiles::Tiling;
+use crate::gp::{JitterPolicy, Kernel};
+use nalgebra::Isometry3;
+use rand::SeedableRng;
+use rangegp_sim::{simulate_scan, Heightmap, ScannerPreset};
+
+/// Seed-000 local-map parameters (flat-ground prior, the configured kernel defaults).
+pub(crate) fn params() -> MapParams {
+    MapParams {
+        kernel: Kernel::matern32(5e-4, 0.97),
+        sphere_radius_m: 10.0,
+        nugget_m2: 1e-6,
+        max_training_rays: 2000,
+        tiling: Tiling::default(),
+        prior: PriorKind::FlatGround {
+            sensor_height_m: 0.75,
+        },
+        target: RangeTarget::Range,
+        jitter: JitterPolicy::default(),
+    }
+}
+
+/// A noisy seed-000 scan of `terrain` from `pose` (returns only).
+pub(crate) fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
+    let preset = ScannerPreset::seed000();
+    let rays = simulate_scan(terrain, &pose, &preset, &mut rand_pcg::Pcg64::seed_from_u64(5));
+    ScanInput {
+        publisher_id: 1,
+        sequence: 1,
+        stamp_ns: 0,
+        pose,
+        max_range_m: preset.max_range_m,
+        range_noise_per_m: preset.range_noise_per_m,
+        rays: rays
+            .iter()
+            .filter_map(|r| {
+                r.measured_range_m.map(|range| RayObservation {
+                    inclination: r.inclination_rad,
+                    azimuth: r.azimuth_rad,
+                    range,
+                })
+            })
+            .collect(),
+    }
+}
