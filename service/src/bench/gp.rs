@@ -17,6 +17,8 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::Instant;
 
+/// Rays per call in the batched prediction measurement (a planner's batch or a grid block).
+const PREDICT_BATCH: usize = 4096;
 /// Options of `rangegp-bench gp`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct GpBenchOptions {
@@ -61,8 +63,11 @@ pub struct GpReport {
     pub openblas_gflops: Option<BTreeMap<String, f64>>,
     /// faer / OpenBLAS by n.
     pub chol_ratio: Option<BTreeMap<String, f64>>,
-    /// Mean + variance predictions per second on one core (tiled seed-000 map).
+    /// Mean + variance predictions per second on one core (tiled seed-000 map, batches of 4096
+    /// rays: the path of batched queries and grids).
     pub predict_points_per_s_per_core: f64,
+    /// The same, one ray per call (the latency path of single-point queries).
+    pub predict_single_points_per_s_per_core: f64,
     /// Exact GP, equal size: rangegp fit + batched predict, seconds.
     pub exact_fit_predict_s: f64,
     /// scikit-learn fit + predict(return_std) on the same data, seconds.
@@ -215,6 +220,20 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
             angles.len() as f64 / secs
         })
         .collect();
+    let predict_single_rate = median(&mut rates);
+    let mut rates: Vec<f64> = (0..repeats)
+        .map(|_| {
+            let (sum, secs) = time(|| {
+                angles
+                    .chunks(PREDICT_BATCH)
+                    .flat_map(|batch| map.predict_ranges(batch))
+                    .map(|(_, v)| v)
+                    .sum::<f64>()
+            });
+            std::hint::black_box(sum);
+            angles.len() as f64 / secs
+        })
+        .collect();
     let predict_rate = median(&mut rates);
 
     // The scikit-learn problem: one seed-000 scan, all returns, exact GP; 4096 queries.
@@ -311,6 +330,7 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
         openblas_gflops: openblas,
         chol_ratio,
         predict_points_per_s_per_core: predict_rate,
+        predict_single_points_per_s_per_core: predict_single_rate,
         exact_fit_predict_s: exact_s,
         sklearn_fit_predict_s: sk_s,
         sklearn_fit_predict_speedup: sk_s.map(|s| s / tiled_s),
@@ -396,8 +416,8 @@ pub fn print_gp(r: &GpReport) {
         );
     }
     println!(
-        "  prediction (mean + variance)     {:>10.0} points/s/core",
-        r.predict_points_per_s_per_core
+        "  prediction (mean + variance)     {:>10.0} points/s/core in batches of {PREDICT_BATCH}, {:.0} one at a time",
+        r.predict_points_per_s_per_core, r.predict_single_points_per_s_per_core
     );
     let [n, m] = r.sklearn_problem;
     println!(

@@ -157,16 +157,15 @@ fn average(fits: &[(f64, f64)]) -> Kernel {
 /// Held-out range samples of the range GP fitted to `scan`.
 fn score_range(scan: &SplitScan, kernel: Kernel, target: RangeTarget) -> Result<Vec<Sample>> {
     let map = LocalRangeMap::fit(&scan.train, &params(kernel, target))?;
-    Ok(scan
-        .test
-        .iter()
-        .map(|t| {
-            let (r, v) = map.predict_range(t.inclination, t.azimuth);
-            Sample {
-                mean: r,
-                sd: v.sqrt().max(1e-12),
-                truth: t.range,
-            }
+    let angles: Vec<(f64, f64)> = scan.test.iter().map(|t| (t.inclination, t.azimuth)).collect();
+    Ok(map
+        .predict_ranges(&angles)
+        .into_iter()
+        .zip(&scan.test)
+        .map(|((r, v), t)| Sample {
+            mean: r,
+            sd: v.sqrt().max(1e-12),
+            truth: t.range,
         })
         .collect())
 }

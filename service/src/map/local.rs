@@ -210,11 +210,27 @@ impl LocalRangeMap {
 
     /// Predicted range mean and latent variance along the sensor-frame direction (θ, φ).
     pub fn predict_range(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
-        let (resid, var) = self.gp.mean_variance(inclination, azimuth);
+        let residual = self.gp.mean_variance(inclination, azimuth);
+        self.to_range(inclination, azimuth, residual)
+    }
+
+    /// Range mean and variance of the GP's residual mean and variance along (θ, φ).
+    fn to_range(&self, inclination: f64, azimuth: f64, (resid, var): (f64, f64)) -> (f64, f64) {
         let u = unit(inclination, azimuth);
         let a = self.prior.amplitude(&u);
         let (range, slope) = self.target.back(self.target.of(self.prior.range(&u)) + a * resid);
         (range, a * a * var * slope * slope)
+    }
+
+    /// [`Self::predict_range`] of many sensor-frame directions (θ, φ) at once (the batched
+    /// path of grid queries and evaluation: each expert's factor is read once per block).
+    pub fn predict_ranges(&self, angles: &[(f64, f64)]) -> Vec<(f64, f64)> {
+        self.gp
+            .mean_variance_batch(angles)
+            .into_iter()
+            .zip(angles)
+            .map(|(residual, &(inclination, azimuth))| self.to_range(inclination, azimuth, residual))
+            .collect()
     }
 
     /// The predicted surface point along sensor direction (θ, φ), in the map frame, with its

@@ -243,6 +243,62 @@ impl TiledGp {
         self.blend(inclination, azimuth, |gp| gp.mean_variance(&x))
     }
 
+    /// [`Self::mean_variance`] of many rays at once: each expert predicts all the rays it
+    /// covers together (one multi-column triangular solve per block, so its factor is read once
+    /// per block rather than once per ray), then the answers are blended with the same weights.
+    pub fn mean_variance_batch(&self, angles: &[(f64, f64)]) -> Vec<(f64, f64)> {
+        let mut assigned: Vec<Vec<(usize, f64)>> = vec![Vec::new(); self.experts.len()];
+        let any_expert = self.experts.iter().position(Option::is_some);
+        for (q, &(theta, phi)) in angles.iter().enumerate() {
+            let rel = self.grid.rel_phi(phi);
+            let (mut covered, mut nearest) = (false, None);
+            for (r, c) in self.grid.candidates(theta, rel) {
+                let k = r * self.grid.cols + c;
+                if self.experts[k].is_none() {
+                    continue;
+                }
+                nearest.get_or_insert(k);
+                let w = self.grid.weight(r, c, theta, rel);
+                if w > 0.0 {
+                    assigned[k].push((q, w));
+                    covered = true;
+                }
+            }
+            // Outside every tile's support: the nearest expert answers alone, as in `blend`.
+            if let (false, Some(k)) = (covered, nearest.or(any_expert)) {
+                assigned[k].push((q, 1.0));
+            }
+        }
+        let mut sums = vec![[0.0; 3]; angles.len()];
+        for (gp, queries) in self.experts.iter().zip(&assigned) {
+            let Some(gp) = gp else { continue };
+            if queries.is_empty() {
+                continue;
+            }
+            let xs: Vec<[f64; 3]> = queries
+                .iter()
+                .map(|&(q, _)| self.embedding.point(angles[q].0, angles[q].1))
+                .collect();
+            let (means, vars) = gp.predict_batch(&xs);
+            for ((&(q, w), m), v) in queries.iter().zip(means).zip(vars) {
+                let s = &mut sums[q];
+                s[0] += w;
+                s[1] += w * m;
+                s[2] += w * (v + m * m);
+            }
+        }
+        sums.iter()
+            .map(|&[wsum, m1, m2]| {
+                if wsum > 0.0 {
+                    let mean = m1 / wsum;
+                    (mean, (m2 / wsum - mean * mean).max(0.0))
+                } else {
+                    (0.0, 0.0)
+                }
+            })
+            .collect()
+    }
+
     fn blend(&self, inclination: f64, azimuth: f64, f: impl Fn(&ExactGp) -> (f64, f64)) -> (f64, f64) {
         let rel = self.grid.rel_phi(azimuth);
         let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
@@ -432,5 +488,33 @@ mod tests {
         let above = gp.mean(1.675, -std::f64::consts::PI + 1e-4);
         assert!((below - above).abs() < 1e-3, "{below} vs {above}");
         assert!((below - 0.3).abs() < 0.02);
+    }
+
+    #[test]
+    fn batched_prediction_equals_one_ray_at_a_time() {
+        let (train, test) = scan();
+        let tiled = TiledGp::fit(
+            &train,
+            Kernel::matern32(5e-4, 0.97),
+            Embedding::sphere(10.0),
+            Tiling::default(),
+            JitterPolicy::default(),
+        )
+        .expect("tiled");
+        // Held-out rays, plus some outside the observed box (the nearest expert answers).
+        let mut angles: Vec<(f64, f64)> = test.iter().step_by(7).map(|&(t, p, _)| (t, p)).collect();
+        angles.extend([(1.2, 0.0), (2.2, 2.5), (1.7, -3.0)]);
+        let batch = tiled.mean_variance_batch(&angles);
+        for (&(t, p), &(m, v)) in angles.iter().zip(&batch) {
+            let (m1, v1) = tiled.mean_variance(t, p);
+            assert!(
+                (m - m1).abs() <= 1e-9 * (1.0 + m1.abs()),
+                "mean at ({t}, {p}): {m} vs {m1}"
+            );
+            assert!(
+                (v - v1).abs() <= 1e-7 * v1 + 1e-15,
+                "variance at ({t}, {p}): {v} vs {v1}"
+            );
+        }
     }
 }
