@@ -115,19 +115,23 @@ pub fn print_hyper(r: &HyperReport) {
         "\nhyperparameters over {} seed-000 scans (20 % of returns each)",
         r.scans
     );
-    println!("                     σ²                 ℓ (m of chord, R = 10 m)");
+    println!("                     σ² (amplitude-scaled)   ℓ (m of footprint)");
     println!(
-        "  batch (per scan)   {:.3} ± {:.3}      {:.3} ± {:.3}",
+        "  batch (per scan)   {:.2e} ± {:.2e}     {:.3} ± {:.3}",
         r.batch_variance.mean, r.batch_variance.sd, r.batch_length_scale.mean, r.batch_length_scale.sd
     );
     println!(
-        "  batch median       {:.3}              {:.3}",
+        "  batch median       {:.2e}                {:.3}",
         r.batch_variance.median, r.batch_length_scale.median
     );
     println!(
-        "  online (final)     {:.3}              {:.3}",
+        "  batch geom. mean   {:.2e}                {:.3}",
+        r.batch_variance.geometric_mean, r.batch_length_scale.geometric_mean
+    );
+    println!(
+        "  online (final)     {:.2e}                {:.3}",
         r.online_variance, r.online_length_scale
     );
-    println!("  seed 000 Table I   2.302 ± 0.980      1.206 ± 0.608");
+    println!("  seed 000 Table I   2.302 ± 0.980 (σ², range sphere)   1.206 ± 0.608 (m of chord)");
     println!("  online within one sd of batch: {}", r.online_within_one_sd);
 }
