@@ -171,6 +171,29 @@ impl Client {
         check_len(rays.len(), rep.items)
     }
 
+    /// Elevation and variance layers over the box `min_m`..`max_m` at `resolution_m`.
+    pub fn grid(
+        &self,
+        min_m: [f64; 2],
+        max_m: [f64; 2],
+        resolution_m: f64,
+    ) -> Result<GridReply, ClientError> {
+        let req = GridRequest {
+            version: PROTOCOL_VERSION,
+            min_m,
+            max_m,
+            resolution_m,
+        };
+        let rep: GridReply = self.call(&self.keys.query(QueryKind::Grid), &req)?;
+        let cells = rep.cols as usize * rep.rows as usize;
+        for got in [rep.elevation_m.len(), rep.variance_m2.len()] {
+            if got != cells {
+                return Err(ClientError::BatchMismatch { sent: cells, got });
+            }
+        }
+        Ok(rep)
+    }
+
     /// The daemon's counters.
     pub fn status(&self) -> Result<StatusReply, ClientError> {
         self.call(

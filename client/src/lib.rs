@@ -3,8 +3,10 @@
 //! - [`Client`]: typed, timed queries over Zenoh (blocking and async).
 //! - [`ScanPublisher`]: zero-copy scan publishing over iceoryx2.
 //! - [`transport`]: Zenoh configuration shared with the daemon.
+//! - [`plot`]: heat-map PNGs (grid layers here, the daemon's demo and evaluation pictures).
 
 pub mod client;
+pub mod plot;
 pub mod publisher;
 pub mod scangen;
 pub mod transport;

@@ -16,11 +16,18 @@ pub enum QueryKind {
     Variance,
     /// Expected hit along rays.
     Ray,
+    /// Elevation and variance layers over a box.
+    Grid,
 }
 
 impl QueryKind {
     /// Every kind, for declaring queryables.
-    pub const ALL: [QueryKind; 3] = [QueryKind::Elevation, QueryKind::Variance, QueryKind::Ray];
+    pub const ALL: [QueryKind; 4] = [
+        QueryKind::Elevation,
+        QueryKind::Variance,
+        QueryKind::Ray,
+        QueryKind::Grid,
+    ];
 
     /// The last key chunk of this kind.
     pub fn as_str(self) -> &'static str {
@@ -28,6 +35,7 @@ impl QueryKind {
             QueryKind::Elevation => "elevation",
             QueryKind::Variance => "variance",
             QueryKind::Ray => "ray",
+            QueryKind::Grid => "grid",
         }
     }
 }

@@ -117,6 +117,63 @@ pub struct RayReply {
     pub items: Vec<RayItem>,
 }
 
+/// Elevation and variance layers over a regular grid (grid_map style).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+    /// Lower-left corner (x, y) of the box in the map frame, metres.
+    pub min_m: [f64; 2],
+    /// Upper-right corner (x, y), metres; each coordinate above `min_m`'s.
+    pub max_m: [f64; 2],
+    /// Cell side, metres (positive).
+    pub resolution_m: f64,
+}
+
+/// The layers of a [`GridRequest`]: `cols × rows` cells, row-major from the lower-left cell,
+/// each value taken at its cell's centre; `None` where no map observed the cell.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Centre (x, y) of cell (0, 0), metres.
+    pub origin_m: [f64; 2],
+    /// Cell side, metres.
+    pub resolution_m: f64,
+    /// Cells along x.
+    pub cols: u32,
+    /// Cells along y.
+    pub rows: u32,
+    /// Surface height per cell, metres.
+    pub elevation_m: Vec<Option<f32>>,
+    /// Variance of the height per cell, square metres.
+    pub variance_m2: Vec<Option<f32>>,
+}
+
+impl GridRequest {
+    /// Cells along x and y the box holds at its resolution (`ceil` of extent / resolution), or
+    /// `None` when the box or resolution is not a finite, positive size.
+    pub fn shape(&self) -> Option<(u64, u64)> {
+        let ext = [self.max_m[0] - self.min_m[0], self.max_m[1] - self.min_m[1]];
+        let ok = self.resolution_m.is_finite()
+            && self.resolution_m > 0.0
+            && ext.iter().all(|e| e.is_finite() && *e > 0.0);
+        let cells = |e: f64| (e / self.resolution_m).ceil();
+        let (c, r) = (cells(ext[0]), cells(ext[1]));
+        (ok && c < 1e9 && r < 1e9).then_some((c as u64, r as u64))
+    }
+}
+
+impl GridReply {
+    /// Centre (x, y) of cell (col, row), metres.
+    pub fn centre(&self, col: u32, row: u32) -> [f64; 2] {
+        [
+            self.origin_m[0] + col as f64 * self.resolution_m,
+            self.origin_m[1] + row as f64 * self.resolution_m,
+        ]
+    }
+}
+
 /// Ask for the daemon's counters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StatusRequest {
@@ -216,4 +273,29 @@ pub struct ErrorReply {
     pub code: ErrorCode,
     /// Human-readable detail.
     pub message: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid(min_m: [f64; 2], max_m: [f64; 2], resolution_m: f64) -> GridRequest {
+        GridRequest {
+            version: crate::PROTOCOL_VERSION,
+            min_m,
+            max_m,
+            resolution_m,
+        }
+    }
+
+    #[test]
+    fn grid_shape_rounds_up_and_refuses_empty_or_non_finite_boxes() {
+        assert_eq!(grid([0.0, 0.0], [10.0, 5.0], 0.5).shape(), Some((20, 10)));
+        assert_eq!(grid([0.0, 0.0], [10.1, 5.0], 0.5).shape(), Some((21, 10)));
+        assert_eq!(grid([0.0, 0.0], [0.0, 5.0], 0.5).shape(), None);
+        assert_eq!(grid([1.0, 0.0], [0.0, 5.0], 0.5).shape(), None);
+        assert_eq!(grid([0.0, 0.0], [10.0, 5.0], 0.0).shape(), None);
+        assert_eq!(grid([0.0, f64::NAN], [10.0, 5.0], 0.5).shape(), None);
+        assert_eq!(grid([0.0, 0.0], [1e300, 5.0], 1e-300).shape(), None);
+    }
 }

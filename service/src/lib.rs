@@ -17,5 +17,5 @@ pub mod gp;
 pub mod ingest;
 pub mod map;
 pub mod metrics;
-pub mod plot;
+pub use rangegp_client::plot;
 pub mod server;

@@ -100,3 +100,11 @@ pub fn world(seed: u64, scans: usize) -> ScanGenerator {
 pub fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()
 }
+
+/// The error code of a query the daemon refused (panics on any other failure: the test's premise).
+pub fn error_code(e: rangegp_client::ClientError) -> rangegp_proto::msg::ErrorCode {
+    match e {
+        rangegp_client::ClientError::Server { code, .. } => code,
+        other => panic!("expected a server error, got {other}"),
+    }
+}

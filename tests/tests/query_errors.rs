@@ -1,25 +1,17 @@
 //! Bad requests get a `reply_err` with the right code, in the request's encoding.
 
 use rangegp_client::scangen::now_ns;
-use rangegp_client::ClientError;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{ElevationReply, ElevationRequest, ErrorCode, Ray};
-use rangegp_tests::{world, Harness};
-
-fn code(e: ClientError) -> ErrorCode {
-    match e {
-        ClientError::Server { code, .. } => code,
-        other => panic!("expected a server error, got {other}"),
-    }
-}
+use rangegp_tests::{error_code, world, Harness};
 
 #[test]
 fn every_bad_request_has_its_code() -> anyhow::Result<()> {
     let h = Harness::start(|c| c.query.max_batch = 100)?;
     let c = &h.client;
     assert_eq!(
-        code(c.elevation(&[[0.0, 0.0]]).expect_err("no map yet")),
+        error_code(c.elevation(&[[0.0, 0.0]]).expect_err("no map yet")),
         ErrorCode::NoMap
     );
     assert_eq!(c.status()?.queries_failed, 1);
@@ -31,11 +23,11 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
     h.wait_status("scan", |s| s.scans_accepted == 1)?;
 
     assert_eq!(
-        code(c.elevation(&vec![[0.0, 0.0]; 101]).expect_err("too big")),
+        error_code(c.elevation(&vec![[0.0, 0.0]; 101]).expect_err("too big")),
         ErrorCode::BatchTooLarge
     );
     assert_eq!(
-        code(c.elevation(&[[f64::NAN, 0.0]]).expect_err("nan")),
+        error_code(c.elevation(&[[f64::NAN, 0.0]]).expect_err("nan")),
         ErrorCode::InvalidArgument
     );
     let zero_dir = Ray {
@@ -44,7 +36,7 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
         max_range_m: 5.0,
     };
     assert_eq!(
-        code(c.ray(&[zero_dir]).expect_err("zero direction")),
+        error_code(c.ray(&[zero_dir]).expect_err("zero direction")),
         ErrorCode::InvalidArgument
     );
 

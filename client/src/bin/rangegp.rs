@@ -2,9 +2,10 @@
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
+use rangegp_client::plot::{save_heatmap, Raster};
 use rangegp_client::scangen::{now_ns, ScanGenerator};
 use rangegp_client::{Client, ScanPublisher};
-use rangegp_proto::msg::Ray;
+use rangegp_proto::msg::{GridReply, Ray};
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
 
@@ -55,6 +56,24 @@ enum Command {
         connection: Connection,
         #[command(subcommand)]
         kind: QueryCommand,
+    },
+    /// Elevation and σ layers over a box: prints a summary as JSON, or the whole reply with
+    /// `--json`; `--png FILE` draws elevation to FILE and σ to FILE with `_sigma` before `.png`.
+    Grid {
+        #[command(flatten)]
+        connection: Connection,
+        /// Box corners X0 Y0 X1 Y1, map frame, metres.
+        #[arg(long, num_args = 4, allow_negative_numbers = true, required = true)]
+        bbox: Vec<f64>,
+        /// Cell side, metres.
+        #[arg(long, default_value_t = 0.25)]
+        res: f64,
+        /// Write the layers as PNG here.
+        #[arg(long)]
+        png: Option<std::path::PathBuf>,
+        /// Print every cell.
+        #[arg(long)]
+        json: bool,
     },
     /// Publish simulated scans along a path at a rate (the scan generator).
     Scangen {
@@ -112,6 +131,18 @@ fn pairs(coords: &[f64]) -> Result<Vec<[f64; 2]>> {
     Ok(coords.chunks(2).map(|c| [c[0], c[1]]).collect())
 }
 
+/// Elevation to `file`, σ beside it (`<stem>_sigma.png`); unobserved cells grey.
+fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
+    let scale = (800 / rep.cols.max(rep.rows).max(1)).clamp(1, 16);
+    let elevation = Raster::from_grid(rep, &rep.elevation_m, |z| z);
+    save_heatmap(file, &elevation, None, colorous::VIRIDIS, &[], scale)?;
+    let sigma = Raster::from_grid(rep, &rep.variance_m2, f64::sqrt);
+    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("grid");
+    let sigma_file = file.with_file_name(format!("{stem}_sigma.png"));
+    save_heatmap(&sigma_file, &sigma, None, colorous::MAGMA, &[], scale)?;
+    Ok(())
+}
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -140,6 +171,34 @@ fn main() -> Result<()> {
                 }
             };
             println!("{json}");
+        }
+        Command::Grid {
+            connection,
+            bbox,
+            res,
+            png,
+            json,
+        } => {
+            let rep = connection
+                .open()?
+                .grid([bbox[0], bbox[1]], [bbox[2], bbox[3]], res)?;
+            if let Some(file) = &png {
+                draw_grid(&rep, file)?;
+            }
+            if json {
+                println!("{}", serde_json::to_string(&rep)?);
+            } else {
+                let observed = rep.elevation_m.iter().flatten().count();
+                let summary = serde_json::json!({
+                    "cols": rep.cols,
+                    "rows": rep.rows,
+                    "origin_m": rep.origin_m,
+                    "resolution_m": rep.resolution_m,
+                    "observed_cells": observed,
+                    "png": png,
+                });
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            }
         }
         Command::Scangen {
             service,

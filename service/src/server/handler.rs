@@ -96,7 +96,48 @@ pub fn answer(
                 },
             )
         }
+        Endpoint::Query(QueryKind::Grid) => {
+            let req: GridRequest = decode(encoding, payload)?;
+            encode(encoding, &grid(&req, state)?)
+        }
     }
+}
+
+/// The layers of a validated grid request: cell centres evaluated like elevation queries.
+fn grid(req: &GridRequest, state: &ServerState) -> Result<GridReply, Failure> {
+    let Some((cols, rows)) = req.shape() else {
+        return fail(
+            ErrorCode::InvalidArgument,
+            "grid: min_m below max_m, both finite, and resolution_m positive",
+        );
+    };
+    if cols.saturating_mul(rows) > state.max_batch as u64 {
+        return fail(
+            ErrorCode::BatchTooLarge,
+            format!(
+                "grid of {cols} × {rows} cells exceeds the limit of {} cells",
+                state.max_batch
+            ),
+        );
+    }
+    let snap = snapshot(state)?;
+    let res = req.resolution_m;
+    let origin = [req.min_m[0] + res / 2.0, req.min_m[1] + res / 2.0];
+    let centres: Vec<[f64; 2]> = (0..rows)
+        .flat_map(|r| (0..cols).map(move |c| [origin[0] + c as f64 * res, origin[1] + r as f64 * res]))
+        .collect();
+    let items = query::par_map(&centres, state.batch_threads, |p| {
+        query::elevation(&snap, p[0], p[1])
+    });
+    Ok(GridReply {
+        version: PROTOCOL_VERSION,
+        origin_m: origin,
+        resolution_m: res,
+        cols: cols as u32,
+        rows: rows as u32,
+        elevation_m: items.iter().map(|i| i.z_m.map(|z| z as f32)).collect(),
+        variance_m2: items.iter().map(|i| i.z_var_m2.map(|v| v as f32)).collect(),
+    })
 }
 
 fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, Failure> {

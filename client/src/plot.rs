@@ -2,6 +2,7 @@
 //! colour bar along the bottom. `image` writes the PNG; `colorous` supplies perceptual maps.
 
 use image::{Rgb, RgbImage};
+use rangegp_proto::msg::GridReply;
 use std::path::Path;
 
 /// A regular grid of optional values; row 0 is the southern edge (smallest y).
@@ -50,6 +51,19 @@ impl Raster {
             y0: y0 + 0.5 * resolution,
             resolution,
             values,
+        }
+    }
+
+    /// One layer of a grid reply (`elevation_m` or `variance_m2`), each value mapped by `f`
+    /// (e.g. a variance to σ).
+    pub fn from_grid(reply: &GridReply, layer: &[Option<f32>], f: impl Fn(f64) -> f64) -> Self {
+        Self {
+            nx: reply.cols as usize,
+            ny: reply.rows as usize,
+            x0: reply.origin_m[0],
+            y0: reply.origin_m[1],
+            resolution: reply.resolution_m,
+            values: layer.iter().map(|v| v.map(|v| f(v as f64))).collect(),
         }
     }
 
