@@ -40,6 +40,8 @@ pub struct Config {
     pub gp: GpConfig,
     /// Rolling window of local maps.
     pub window: WindowConfig,
+    /// The world-frame aggregate of everything seen.
+    pub aggregate: AggregateConfig,
     /// Zenoh session.
     pub zenoh: ZenohConfig,
     /// Query limits.
@@ -147,6 +149,28 @@ pub struct WindowConfig {
     pub capacity: usize,
 }
 
+/// The world-frame aggregate (docs/ARCHITECTURE.md "Aggregates").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AggregateConfig {
+    /// Fold every fitted scan into the aggregate (its own thread) and answer from it where no
+    /// window map sees a point. Off by default until its insert (57–159 ms per seed-000 scan,
+    /// sharing the cores with the fitter) is cheaper than a scan period: issue 5.
+    pub enabled: bool,
+    /// Fitted scans waiting for the aggregate at most; when it falls behind, the newest wins and
+    /// the displaced ones are counted.
+    pub queue_len: usize,
+}
+
+impl Default for AggregateConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            queue_len: 4,
+        }
+    }
+}
+
 /// Zenoh session.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -182,6 +206,7 @@ impl Default for Config {
             ingest: IngestConfig::default(),
             gp: GpConfig::default(),
             window: WindowConfig::default(),
+            aggregate: AggregateConfig::default(),
             zenoh: ZenohConfig::default(),
             query: QueryConfig::default(),
         }
@@ -293,6 +318,9 @@ impl Config {
         }
         if !ordered(o.variance_bounds) || !ordered(o.length_scale_bounds) {
             return bad("gp.online bounds must be 0 < min < max");
+        }
+        if self.aggregate.queue_len == 0 {
+            return bad("aggregate.queue_len must be positive");
         }
         if self.window.capacity == 0 {
             return bad("window.capacity must be positive");

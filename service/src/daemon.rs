@@ -1,10 +1,13 @@
-//! The daemon: ingest thread → newest-wins queue → fitter thread → window → snapshot → queries.
+//! The daemon: ingest thread → newest-wins queue → fitter thread → window → snapshot → queries;
+//! the fitter hands each map to the aggregate thread, which publishes its own copy.
 
 use crate::config::Config;
 use crate::gp::hyper::OnlineHyperparameters;
 use crate::gp::Kernel;
 use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits};
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::aggregate::Aggregate;
 use crate::map::local::{hyper_sample, HyperSample, MapParams, ScanInput};
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::metrics::Metrics;
@@ -50,6 +53,7 @@ pub struct Daemon {
     ingest: Option<IngestHandle>,
     fitter: Option<JoinHandle<()>>,
     learner: Option<JoinHandle<()>>,
+    aggregator: Option<JoinHandle<()>>,
     session: zenoh::Session,
 }
 
@@ -120,14 +124,28 @@ impl Daemon {
         } else {
             None
         };
+        let (aggregate_feed, aggregator) = if config.aggregate.enabled {
+            let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
+            let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), Arc::clone(&shutdown));
+            let thread = std::thread::Builder::new()
+                .name("rangegp-aggregate".into())
+                .spawn(move || aggregate_loop(&rx, &state, WorldParams::default(), &shutdown))?;
+            (Some(feed), Some(thread))
+        } else {
+            (None, None)
+        };
         let queue = Arc::new(LatestQueue::new(config.ingest.queue_len));
         let feed = learner.as_ref().map(|l| (Arc::clone(&l.samples), l.subset));
         let fitter = {
             let (queue, state, shutdown) = (Arc::clone(&queue), Arc::clone(&state), Arc::clone(&shutdown));
             let capacity = config.window.capacity;
+            let outputs = FitOutputs {
+                learner: feed,
+                aggregate: aggregate_feed,
+            };
             std::thread::Builder::new()
                 .name("rangegp-fit".into())
-                .spawn(move || fit_loop(&queue, &state, params, capacity, feed, &shutdown))?
+                .spawn(move || fit_loop(&queue, &state, params, capacity, outputs, &shutdown))?
         };
         let ingest = spawn_ingest(
             IngestSettings {
@@ -150,6 +168,9 @@ impl Daemon {
                 if let Some(l) = learner {
                     let _ = l.thread.join();
                 }
+                if let Some(a) = aggregator {
+                    let _ = a.join();
+                }
                 return Err(e.into());
             }
         };
@@ -165,6 +186,7 @@ impl Daemon {
             ingest: Some(ingest),
             fitter: Some(fitter),
             learner: learner.map(|l| l.thread),
+            aggregator,
             session,
         })
     }
@@ -196,6 +218,9 @@ impl Daemon {
         if let Some(l) = self.learner.take() {
             let _ = l.join();
         }
+        if let Some(a) = self.aggregator.take() {
+            let _ = a.join();
+        }
         if let Err(e) = self.session.close().wait() {
             warn!(error = %e, "closing the zenoh session failed");
         }
@@ -210,12 +235,23 @@ impl Drop for Daemon {
     }
 }
 
+/// Fitted scans on their way to the aggregate thread (newest wins).
+type AggregateFeed = LatestQueue<(ScanInput, Arc<LocalRangeMap>)>;
+
+/// Where the fitter sends what it made, besides the window.
+struct FitOutputs {
+    /// Hyperparameter samples for the online learner, with the subset size.
+    learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
+    /// Fitted scans for the aggregate thread.
+    aggregate: Option<Arc<AggregateFeed>>,
+}
+
 fn fit_loop(
     queue: &LatestQueue<ScanInput>,
     state: &ServerState,
     mut params: MapParams,
     capacity: usize,
-    learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
+    outputs: FitOutputs,
     shutdown: &AtomicBool,
 ) {
     let mut window = Window::new(capacity);
@@ -238,17 +274,62 @@ fn fit_loop(
                     .metrics
                     .jittered_tiles
                     .fetch_add(map.jittered_tiles() as u64, Ordering::Relaxed);
-                window.push(Arc::new(map));
-                state.snapshot.store(Arc::new(window.snapshot()));
+                let map = Arc::new(map);
+                window.push(Arc::clone(&map));
+                let maps = window.snapshot().maps;
+                state.snapshot.rcu(|old| MapSnapshot {
+                    maps: maps.clone(),
+                    aggregate: old.aggregate.clone(),
+                });
                 state.metrics.record_fit(started.elapsed());
                 state.metrics.accepted.fetch_add(1, Ordering::Relaxed);
-                if let Some((samples, subset)) = &learner {
+                if let Some((samples, subset)) = &outputs.learner {
                     samples.push(hyper_sample(&scan, &params, *subset));
+                }
+                if let Some(feed) = &outputs.aggregate {
+                    if feed.push((scan, map)).is_some() {
+                        state.metrics.aggregate_skipped.fetch_add(1, Ordering::Relaxed);
+                    }
                 }
             }
             Err(e) => {
                 state.metrics.reject(RejectReason::FitFailed);
                 warn!(error = %e, "fit failed; scan rejected");
+            }
+        }
+    }
+}
+
+/// Folds fitted scans into the world aggregate and publishes a copy after each (tiles are shared,
+/// so a copy costs the cells). A failed insert is counted and logged; the aggregate keeps what it
+/// had before that scan's tiles.
+fn aggregate_loop(feed: &AggregateFeed, state: &ServerState, params: WorldParams, shutdown: &AtomicBool) {
+    let mut world = WorldAggregate::new(params);
+    while !shutdown.load(Ordering::Relaxed) {
+        let Some((scan, map)) = feed.pop_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let _span = info_span!(
+            "aggregate",
+            publisher = scan.publisher_id,
+            sequence = scan.sequence
+        )
+        .entered();
+        let mut next = world.clone();
+        match next.insert(&scan, &map) {
+            Ok(()) => {
+                world = next;
+                let published = Arc::new(world.clone());
+                state.snapshot.rcu(|old| MapSnapshot {
+                    maps: old.maps.clone(),
+                    aggregate: Some(Arc::clone(&published)),
+                });
+                state.metrics.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
+                debug!(cells = world.len(), tiles = world.tiles(), "aggregate updated");
+            }
+            Err(e) => {
+                state.metrics.aggregate_failed.fetch_add(1, Ordering::Relaxed);
+                warn!(error = %e, "aggregate insert failed; scan kept in the window only");
             }
         }
     }

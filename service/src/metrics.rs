@@ -22,6 +22,12 @@ pub struct Metrics {
     pub hyper_updates: AtomicU64,
     /// Local experts that needed Cholesky jitter.
     pub jittered_tiles: AtomicU64,
+    /// Fitted scans folded into the aggregate.
+    pub aggregate_inserts: AtomicU64,
+    /// Fitted scans the aggregate skipped because it fell behind (newest wins).
+    pub aggregate_skipped: AtomicU64,
+    /// Fitted scans the aggregate could not fold in (its tile fit failed; the map keeps its state).
+    pub aggregate_failed: AtomicU64,
     fit_count: AtomicU64,
     fit_ns_total: AtomicU64,
     fit_ns_last: AtomicU64,
@@ -42,6 +48,9 @@ impl Default for Metrics {
             sequence_gaps: AtomicU64::new(0),
             hyper_updates: AtomicU64::new(0),
             jittered_tiles: AtomicU64::new(0),
+            aggregate_inserts: AtomicU64::new(0),
+            aggregate_skipped: AtomicU64::new(0),
+            aggregate_failed: AtomicU64::new(0),
             fit_count: AtomicU64::new(0),
             fit_ns_total: AtomicU64::new(0),
             fit_ns_last: AtomicU64::new(0),

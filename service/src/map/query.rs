@@ -1,5 +1,6 @@
 //! Query evaluation over a [`MapSnapshot`]: elevation, variance and rays, in batches.
 
+use super::aggregate::Aggregate;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
@@ -24,17 +25,22 @@ fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
     near.into_iter().take(CANDIDATES).map(|(_, m)| m).collect()
 }
 
-/// Elevation at (x, y): the least uncertain answer among the nearest window maps that saw it.
+/// Elevation at (x, y): the least uncertain answer among the nearest window maps that saw it,
+/// else the aggregate's where it has fused cells nearby, else none.
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
     let best = nearest(snapshot, x, y)
         .into_iter()
         .filter_map(|m| m.elevation(x, y))
         .min_by(|a, b| a.var.total_cmp(&b.var));
-    match best {
-        Some(e) => ElevationItem {
+    let answer = best.map(|e| (e, Source::Window)).or_else(|| {
+        let agg = snapshot.aggregate.as_ref()?;
+        agg.elevation(x, y).map(|e| (e, Source::Aggregate))
+    });
+    match answer {
+        Some((e, source)) => ElevationItem {
             z_m: Some(e.z),
             z_var_m2: Some(e.var),
-            source: Source::Window,
+            source,
             observed: true,
         },
         None => ElevationItem {

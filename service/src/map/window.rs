@@ -1,5 +1,6 @@
 //! The rolling window of recent local maps and the immutable snapshot queries read.
 
+use super::aggregate::world::WorldAggregate;
 use super::local::LocalRangeMap;
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -48,13 +49,16 @@ impl Window {
     pub fn snapshot(&self) -> MapSnapshot {
         MapSnapshot {
             maps: self.maps.iter().cloned().collect(),
+            aggregate: None,
         }
     }
 }
 
-/// What a query sees: the window's maps at one instant (newest first); swapped atomically.
+/// What a query sees: the window's maps and the aggregate at one instant; swapped atomically.
 #[derive(Debug, Clone, Default)]
 pub struct MapSnapshot {
     /// Local maps, newest first.
     pub maps: Vec<Arc<LocalRangeMap>>,
+    /// The world aggregate as of its last insert (when enabled).
+    pub aggregate: Option<Arc<WorldAggregate>>,
 }

@@ -15,6 +15,7 @@ use crate::map::local::{HeightEstimate, LocalRangeMap, ScanInput};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap};
+use std::sync::Arc;
 
 /// Settings of the world aggregate.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -35,6 +36,9 @@ pub struct WorldParams {
     pub max_cell_sd_m: f64,
     /// A query farther than this from every fused cell is unobserved, metres.
     pub max_gap_m: f64,
+    /// Cells farther than this from the sensor are not fused, metres: beyond it a long-range
+    /// sensor sees the ground at grazing angles (and the cells to visit grow as its square).
+    pub max_reach_m: f64,
 }
 
 impl Default for WorldParams {
@@ -48,6 +52,7 @@ impl Default for WorldParams {
             nugget_m2: 1e-6,
             max_cell_sd_m: 0.1,
             max_gap_m: 0.75,
+            max_reach_m: 10.0,
         }
     }
 }
@@ -77,7 +82,8 @@ pub struct WorldState {
 pub struct WorldAggregate {
     params: WorldParams,
     cells: HashMap<(i32, i32), Cell>,
-    tiles: HashMap<(i32, i32), ElevationGp>,
+    // Shared so that a published copy costs the cells and one pointer per tile.
+    tiles: HashMap<(i32, i32), Arc<ElevationGp>>,
     refits: u64,
 }
 
@@ -189,7 +195,7 @@ impl WorldAggregate {
         self.refits += fitted.len() as u64;
         for (key, gp) in fitted {
             match gp {
-                Some(gp) => self.tiles.insert(key, gp),
+                Some(gp) => self.tiles.insert(key, Arc::new(gp)),
                 None => self.tiles.remove(&key),
             };
         }
@@ -229,7 +235,7 @@ impl Aggregate for WorldAggregate {
 
     fn insert(&mut self, _scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
         let s = local.sensor_position();
-        let reach = local.max_range();
+        let reach = local.max_range().min(self.params.max_reach_m);
         let (lo, hi) = (
             self.cell_of(s.x - reach, s.y - reach),
             self.cell_of(s.x + reach, s.y + reach),
