@@ -300,11 +300,11 @@ fn fit_loop(
     }
 }
 
-/// Folds fitted scans into the world aggregate and publishes a copy after each (tiles are shared,
-/// so a copy costs the cells). A failed insert is counted and logged; the aggregate keeps what it
-/// had before that scan's tiles.
+/// Folds fitted scans into the world aggregate: each insert goes into a copy of the published map
+/// (tiles are shared, so a copy costs the cells), which is then published. A failed insert is
+/// counted and logged; the published map stays as it was.
 fn aggregate_loop(feed: &AggregateFeed, state: &ServerState, params: WorldParams, shutdown: &AtomicBool) {
-    let mut world = WorldAggregate::new(params);
+    let mut world = Arc::new(WorldAggregate::new(params));
     while !shutdown.load(Ordering::Relaxed) {
         let Some((scan, map)) = feed.pop_timeout(Duration::from_millis(50)) else {
             continue;
@@ -315,14 +315,13 @@ fn aggregate_loop(feed: &AggregateFeed, state: &ServerState, params: WorldParams
             sequence = scan.sequence
         )
         .entered();
-        let mut next = world.clone();
+        let mut next = WorldAggregate::clone(&world);
         match next.insert(&scan, &map) {
             Ok(()) => {
-                world = next;
-                let published = Arc::new(world.clone());
+                world = Arc::new(next);
                 state.snapshot.rcu(|old| MapSnapshot {
                     maps: old.maps.clone(),
-                    aggregate: Some(Arc::clone(&published)),
+                    aggregate: Some(Arc::clone(&world)),
                 });
                 state.metrics.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
                 debug!(cells = world.len(), tiles = world.tiles(), "aggregate updated");

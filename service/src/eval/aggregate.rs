@@ -9,7 +9,7 @@ use super::progress;
 use super::scores::{MeanSd, Sample, Scores};
 use super::split::{split_scan, SplitScan};
 use crate::config::Config;
-use crate::gp::hyper::{fit_hyperparameters, HyperBounds};
+use crate::gp::hyper::fit_hyperparameters;
 use crate::gp::likelihood::TrainingSet;
 use crate::gp::{sphere, JitterPolicy, Kernel};
 use crate::map::aggregate::pose_gp::{PoseAugmentedGp, PoseGpParams};
@@ -113,17 +113,8 @@ fn tune_paper_form(scan: &SplitScan) -> Result<(f64, f64)> {
         targets: &targets,
         noise_var: &noise,
     };
-    let bounds = HyperBounds {
-        variance: (1e-4, 1e2),
-        length_scale: (1e-2, 50.0),
-    };
-    let fit = fit_hyperparameters(&Kernel::matern32(2.5, 0.15), set, bounds, 100)?;
+    let fit = fit_hyperparameters(&local::start_kernel(), set, local::bounds(), 100)?;
     Ok((fit.variance, fit.length_scale))
-}
-
-fn geometric(v: impl Iterator<Item = f64>) -> f64 {
-    let logs: Vec<f64> = v.map(f64::ln).collect();
-    (logs.iter().sum::<f64>() / logs.len().max(1) as f64).exp()
 }
 
 /// The three kernels: range GP (the daemon's form), seed-000 form, elevation GP.
@@ -139,20 +130,10 @@ fn tune(terrain: &Heightmap, opts: &AggregateOptions) -> Result<[Kernel; 3]> {
         })
         .collect::<Result<_>>()?;
     bar.finish_and_clear();
-    let k = |v: f64, l: f64| Kernel::matern32(v, l);
     Ok([
-        k(
-            geometric(fits.iter().map(|f| f.0.variance)),
-            geometric(fits.iter().map(|f| f.0.length_scale)),
-        ),
-        k(
-            geometric(fits.iter().map(|f| f.1 .0)),
-            geometric(fits.iter().map(|f| f.1 .1)),
-        ),
-        k(
-            geometric(fits.iter().map(|f| f.2.variance)),
-            geometric(fits.iter().map(|f| f.2.length_scale)),
-        ),
+        local::geometric_kernel(fits.iter().map(|f| (f.0.variance, f.0.length_scale))),
+        local::geometric_kernel(fits.iter().map(|f| f.1)),
+        local::geometric_kernel(fits.iter().map(|f| (f.2.variance, f.2.length_scale))),
     ])
 }
 

@@ -31,7 +31,9 @@ pub struct LocalOptions {
 }
 
 /// Where every optimiser starts (seed 000: σ = 2.5, κ = 0.15).
-const START: (f64, f64) = (2.5, 0.15);
+pub fn start_kernel() -> Kernel {
+    Kernel::matern32(2.5, 0.15)
+}
 /// Known noise on top of the sensor model for both models, m² (see docs/EVALUATION.md).
 pub const NUGGET_M2: f64 = 1e-6;
 
@@ -89,7 +91,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
 
 /// Training points of a scan in the map frame with their noise variances (isotropic: the range
 /// noise of the ray), for the elevation GP.
-fn world_points(scan: &SplitScan) -> (Vec<[f64; 3]>, Vec<f64>) {
+pub fn world_points(scan: &SplitScan) -> (Vec<[f64; 3]>, Vec<f64>) {
     let t = &scan.train;
     let s = t.pose.translation.vector;
     t.rays
@@ -105,29 +107,42 @@ fn world_points(scan: &SplitScan) -> (Vec<[f64; 3]>, Vec<f64>) {
         .unzip()
 }
 
-fn bounds() -> HyperBounds {
+/// The hyperparameter box every seed-000 optimiser searches.
+pub fn bounds() -> HyperBounds {
     HyperBounds {
         variance: (1e-4, 1e2),
         length_scale: (1e-2, 50.0),
     }
 }
 
-/// Per-scan optima of both models (range GP, elevation GP) on one tuning scan.
-pub fn tune(scan: &SplitScan) -> Result<(HyperFit, HyperFit)> {
-    let start = Kernel::matern32(START.0, START.1);
-    let sample = hyper_sample(&scan.train, &sphere_params(start), usize::MAX);
-    let range = fit_hyperparameters(&start, sample.as_training_set(), bounds(), 100)?;
-    let (points, noise) = world_points(scan);
-    let mean_z = points.iter().map(|p| p[2]).sum::<f64>() / points.len() as f64;
+/// The elevation GP's optimum on map-frame `points` (z about its mean over (x, y)) with their
+/// noise variances, from seed 000's start, at most `iterations` L-BFGS steps.
+pub fn elevation_optimum(points: &[[f64; 3]], noise: &[f64], iterations: u64) -> Result<HyperFit> {
+    let mean_z = points.iter().map(|p| p[2]).sum::<f64>() / points.len().max(1) as f64;
     let inputs: Vec<[f64; 3]> = points.iter().map(|p| [p[0], p[1], 0.0]).collect();
     let targets: Vec<f64> = points.iter().map(|p| p[2] - mean_z).collect();
     let set = TrainingSet {
         inputs: &inputs,
         targets: &targets,
-        noise_var: &noise,
+        noise_var: noise,
     };
-    let elevation = fit_hyperparameters(&start, set, bounds(), 100)?;
-    Ok((range, elevation))
+    Ok(fit_hyperparameters(&start_kernel(), set, bounds(), iterations)?)
+}
+
+/// Matérn-3/2 with the geometric means of per-scan optima (σ², ℓ): seed 000 averaged its
+/// optima; a few scans run to a bound, so the average is taken in log space.
+pub fn geometric_kernel(fits: impl Iterator<Item = (f64, f64)>) -> Kernel {
+    let (v, l): (Vec<f64>, Vec<f64>) = fits.unzip();
+    Kernel::matern32(MeanSd::of(&v).geometric_mean, MeanSd::of(&l).geometric_mean)
+}
+
+/// Per-scan optima of both models (range GP, elevation GP) on one tuning scan.
+pub fn tune(scan: &SplitScan) -> Result<(HyperFit, HyperFit)> {
+    let start = start_kernel();
+    let sample = hyper_sample(&scan.train, &sphere_params(start), usize::MAX);
+    let range = fit_hyperparameters(&start, sample.as_training_set(), bounds(), 100)?;
+    let (points, noise) = world_points(scan);
+    Ok((range, elevation_optimum(&points, &noise, 100)?))
 }
 
 /// Samples and timing of one test scan: (range z samples, range σxyz, elevation samples, fit ms ×2).

@@ -4,16 +4,16 @@
 //! the elevation GP, one height per (x, y), cannot hold a roof over a floor, and its error on the
 //! same rays shows it.
 
-use super::local::NUGGET_M2;
+use super::local::{self, NUGGET_M2};
 use super::progress;
 use super::scores::{Sample, Scores};
 use super::split::{split_scan, SplitScan};
 use crate::config::Config;
 use crate::gp::hyper::{fit_hyperparameters, HyperBounds};
-use crate::gp::likelihood::TrainingSet;
 use crate::gp::{JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{hyper_sample, LocalRangeMap, MapParams, PriorKind, RangeTarget};
+use crate::map::root;
 use crate::plot::{save_heatmap, Raster};
 use anyhow::{Context, Result};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -105,53 +105,29 @@ fn params(kernel: Kernel, target: RangeTarget) -> MapParams {
     }
 }
 
-/// Range where the ray first meets the elevation GP's surface (marching 0.1 m, then bisection),
-/// or `max_range` when it never does.
+/// Range where the ray first meets the elevation GP's surface (sampled every 0.1 m, refined by
+/// the maps' root finder), or `max_range` when it never does. The ray may start above or below
+/// the surface (under a roof the baseline's surface lies between floor and roof).
 fn cast_on_heights(gp: &ElevationGp, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> f64 {
     let side = |t: f64| {
         let p = origin + dir * t;
         p.z - gp.height(p.x, p.y)
     };
     let start = side(0.0).signum();
-    let step = 0.1;
-    let mut t = step;
-    while t <= max_range {
-        if side(t).signum() != start {
-            let (mut lo, mut hi) = (t - step, t);
-            for _ in 0..20 {
-                let mid = 0.5 * (lo + hi);
-                if side(mid).signum() == start {
-                    lo = mid;
-                } else {
-                    hi = mid;
-                }
-            }
-            return 0.5 * (lo + hi);
-        }
-        t += step;
-    }
-    max_range
+    let samples = (max_range / 0.1).ceil() as usize;
+    root::first_crossing(|t| Some(-start * side(t)), 0.0, max_range, samples).unwrap_or(max_range)
 }
 
-/// Per-scan optimum (ln σ², ln ℓ) of the range GP under `target` on a compact patch of rays.
+/// Per-scan optimum (σ², ℓ) of the range GP under `target` on a compact patch of rays.
 fn tune(scan: &SplitScan, target: RangeTarget) -> Result<(f64, f64)> {
-    let start = Kernel::matern32(2.5, 0.15);
+    let start = local::start_kernel();
     let sample = hyper_sample(&scan.train, &params(start, target), HYPER_RAYS);
     let bounds = HyperBounds {
         variance: (1e-6, 1e3),
         length_scale: (1e-2, 50.0),
     };
     let f = fit_hyperparameters(&start, sample.as_training_set(), bounds, 100)?;
-    Ok((f.variance.ln(), f.length_scale.ln()))
-}
-
-/// Geometric mean of per-scan optima.
-fn average(fits: &[(f64, f64)]) -> Kernel {
-    let n = fits.len().max(1) as f64;
-    Kernel::matern32(
-        (fits.iter().map(|f| f.0).sum::<f64>() / n).exp(),
-        (fits.iter().map(|f| f.1).sum::<f64>() / n).exp(),
-    )
+    Ok((f.variance, f.length_scale))
 }
 
 /// Held-out range samples of the range GP fitted to `scan`.
@@ -174,44 +150,17 @@ fn score_range(scan: &SplitScan, kernel: Kernel, target: RangeTarget) -> Result<
 fn score_elevation(scan: &SplitScan) -> Result<(Vec<Sample>, Vec<Sample>)> {
     let tr = &scan.train;
     let s = tr.pose.translation.vector;
-    let stride = tr.rays.len().div_ceil(ELEVATION_POINTS).max(1);
-    let (points, noise): (Vec<[f64; 3]>, Vec<f64>) = tr
-        .rays
-        .iter()
-        .step_by(stride)
-        .map(|r| {
-            let p = s + tr.pose.rotation * rangegp_sim::sensor::direction(r.inclination, r.azimuth) * r.range;
-            (
-                [p.x, p.y, p.z],
-                (tr.range_noise_per_m * r.range).powi(2) + NUGGET_M2,
-            )
-        })
-        .unzip();
+    let (all_points, all_noise) = local::world_points(scan);
+    let every = |n: usize| all_points.len().div_ceil(n).max(1);
+    let stride = every(ELEVATION_POINTS);
+    let points: Vec<[f64; 3]> = all_points.iter().step_by(stride).copied().collect();
+    let noise: Vec<f64> = all_noise.iter().step_by(stride).copied().collect();
     // The baseline gets its own per-scan optimum (the most favourable setting for it), learnt on
-    // an even stride of its points.
-    let hyper_stride = points.len().div_ceil(HYPER_RAYS).max(1);
-    let mean_z = points.iter().map(|p| p[2]).sum::<f64>() / points.len() as f64;
-    let inputs: Vec<[f64; 3]> = points
-        .iter()
-        .step_by(hyper_stride)
-        .map(|p| [p[0], p[1], 0.0])
-        .collect();
-    let targets: Vec<f64> = points
-        .iter()
-        .step_by(hyper_stride)
-        .map(|p| p[2] - mean_z)
-        .collect();
-    let hyper_noise: Vec<f64> = noise.iter().step_by(hyper_stride).copied().collect();
-    let set = TrainingSet {
-        inputs: &inputs,
-        targets: &targets,
-        noise_var: &hyper_noise,
-    };
-    let bounds = HyperBounds {
-        variance: (1e-4, 1e2),
-        length_scale: (1e-2, 50.0),
-    };
-    let ek = fit_hyperparameters(&Kernel::matern32(2.5, 0.15), set, bounds, 50)?;
+    // an even stride of the scan's points.
+    let hyper = every(HYPER_RAYS);
+    let hyper_points: Vec<[f64; 3]> = all_points.iter().step_by(hyper).copied().collect();
+    let hyper_noise: Vec<f64> = all_noise.iter().step_by(hyper).copied().collect();
+    let ek = local::elevation_optimum(&hyper_points, &hyper_noise, 50)?;
     let egp = ElevationGp::fit(
         &points,
         &noise,
@@ -266,8 +215,8 @@ pub fn run_overhang(opts: &OverhangOptions, out: &Path) -> Result<OverhangReport
         })
         .collect::<Result<_>>()?;
     bar.finish_and_clear();
-    let range_kernel = average(&fits.iter().map(|f| f[0]).collect::<Vec<_>>());
-    let inverse_kernel = average(&fits.iter().map(|f| f[1]).collect::<Vec<_>>());
+    let range_kernel = local::geometric_kernel(fits.iter().map(|f| f[0]));
+    let inverse_kernel = local::geometric_kernel(fits.iter().map(|f| f[1]));
     let bar = progress::bar(opts.test_scans as u64, "overhang: scoring");
     let scored: Vec<Scored> = (0..opts.test_scans)
         .into_par_iter()

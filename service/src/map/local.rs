@@ -62,7 +62,7 @@ pub enum RangeTarget {
     #[default]
     Range,
     /// Inverse range 1/r: every plane is linear in the ray direction (1/r = n·u / d), so walls,
-    /// roofs and grazing views that bend the range steeply stay straight (MATH.md).
+    /// roofs and grazing views that bend the range steeply stay straight (docs/ARCHITECTURE.md).
     InverseRange,
 }
 
@@ -222,8 +222,8 @@ impl LocalRangeMap {
         (range, a * a * var * slope * slope)
     }
 
-    /// [`Self::predict_range`] of many sensor-frame directions (θ, φ) at once (the batched
-    /// path of grid queries and evaluation: each expert's factor is read once per block).
+    /// [`Self::predict_range`] of many sensor-frame directions (θ, φ) at once (each expert's
+    /// factor is read once per block of its rays rather than once per ray).
     pub fn predict_ranges(&self, angles: &[(f64, f64)]) -> Vec<(f64, f64)> {
         self.gp
             .mean_variance_batch(angles)

@@ -269,16 +269,17 @@ impl TiledGp {
                 assigned[k].push((q, 1.0));
             }
         }
+        let points: Vec<[f64; 3]> = angles
+            .iter()
+            .map(|&(theta, phi)| self.embedding.point(theta, phi))
+            .collect();
         let mut sums = vec![[0.0; 3]; angles.len()];
         for (gp, queries) in self.experts.iter().zip(&assigned) {
             let Some(gp) = gp else { continue };
             if queries.is_empty() {
                 continue;
             }
-            let xs: Vec<[f64; 3]> = queries
-                .iter()
-                .map(|&(q, _)| self.embedding.point(angles[q].0, angles[q].1))
-                .collect();
+            let xs: Vec<[f64; 3]> = queries.iter().map(|&(q, _)| points[q]).collect();
             let (means, vars) = gp.predict_batch(&xs);
             for ((&(q, w), m), v) in queries.iter().zip(means).zip(vars) {
                 let s = &mut sums[q];
