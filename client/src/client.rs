@@ -248,6 +248,36 @@ impl Client {
         decode_reply(reply, encoding)
     }
 
+    /// Sends `payload` to the daemon's bare echo queryable and returns what came back (the
+    /// transport's round trip without any map work).
+    pub fn echo(&self, payload: Vec<u8>) -> Result<Vec<u8>, ClientError> {
+        match self.call_raw(&self.keys.echo(), payload, Encoding::Bincode)? {
+            Ok(bytes) => Ok(bytes),
+            Err(e) => Err(ClientError::Server {
+                code: e.code,
+                message: e.message,
+            }),
+        }
+    }
+
+    /// Calls `on_update` with every [`MapUpdate`] the daemon publishes (a scan's map answering
+    /// queries); undecodable events are skipped. Dropping the subscriber stops the calls.
+    pub fn subscribe_map_updates(
+        &self,
+        on_update: impl Fn(MapUpdate) + Send + Sync + 'static,
+    ) -> Result<zenoh::pubsub::Subscriber<()>, ClientError> {
+        self.session
+            .declare_subscriber(self.keys.map_updates())
+            .callback(move |sample| {
+                let bytes = sample.payload().to_bytes();
+                if let Ok(update) = codec::decode::<MapUpdate>(Encoding::Bincode, &bytes) {
+                    on_update(update);
+                }
+            })
+            .wait()
+            .map_err(|e| ClientError::Transport(e.to_string()))
+    }
+
     /// The keys of the map this client talks to.
     pub fn keys(&self) -> &MapKeys {
         &self.keys

@@ -3,9 +3,11 @@
 //! - [`Client`]: typed, timed queries over Zenoh (blocking and async).
 //! - [`ScanPublisher`]: zero-copy scan publishing over iceoryx2.
 //! - [`transport`]: Zenoh configuration shared with the daemon.
+//! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
 //! - [`plot`]: heat-map PNGs (grid layers here, the daemon's demo and evaluation pictures).
 
 pub mod client;
+pub mod load;
 pub mod plot;
 pub mod publisher;
 pub mod scangen;

@@ -59,6 +59,7 @@ pub struct ScanGenerator {
     pub path: Path,
     /// Sensor model.
     pub preset: ScannerPreset,
+    seed: u64,
     rng: Pcg64,
 }
 
@@ -83,6 +84,7 @@ impl ScanGenerator {
             terrain,
             path,
             preset,
+            seed,
             rng: Pcg64::seed_from_u64(seed ^ 0x0015e),
         }
     }
@@ -99,8 +101,22 @@ impl ScanGenerator {
 
     /// Simulates the scan at waypoint `i` (noise drawn from the generator's stream).
     pub fn scan(&mut self, i: usize, stamp_ns: u64) -> GeneratedScan {
+        let mut rng = std::mem::replace(&mut self.rng, Pcg64::seed_from_u64(0));
+        let scan = self.scan_with(i, stamp_ns, &mut rng);
+        self.rng = rng;
+        scan
+    }
+
+    /// Simulates the scan at waypoint `i` with noise from a stream of its own, so that scans
+    /// can be made in parallel and still reproducibly.
+    pub fn scan_independent(&self, i: usize, stamp_ns: u64) -> GeneratedScan {
+        let stream = (self.seed ^ 0x1dea).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ i as u64;
+        self.scan_with(i, stamp_ns, &mut Pcg64::seed_from_u64(stream))
+    }
+
+    fn scan_with(&self, i: usize, stamp_ns: u64, rng: &mut Pcg64) -> GeneratedScan {
         let pose = self.path.pose(&self.terrain, i, self.preset.mount_height_m);
-        let rays = simulate_scan(&self.terrain, &pose, &self.preset, &mut self.rng);
+        let rays = simulate_scan(&self.terrain, &pose, &self.preset, rng);
         let (header, points) = to_message(&self.preset, &pose, &rays, stamp_ns);
         GeneratedScan { header, points, pose }
     }

@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 
 def main() -> int:

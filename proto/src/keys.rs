@@ -78,6 +78,17 @@ impl MapKeys {
         format!("rangegp/{}/status", self.map_id)
     }
 
+    /// `rangegp/<map_id>/echo`: a bare queryable on the daemon's session that returns the
+    /// request's bytes (the transport floor a round trip is compared against).
+    pub fn echo(&self) -> String {
+        format!("rangegp/{}/echo", self.map_id)
+    }
+
+    /// `rangegp/<map_id>/events/map`, where [`crate::msg::MapUpdate`]s are published.
+    pub fn map_updates(&self) -> String {
+        format!("rangegp/{}/events/map", self.map_id)
+    }
+
     /// `rangegp/<map_id>/@alive`, the daemon's liveliness token.
     pub fn alive(&self) -> String {
         format!("rangegp/{}/@alive", self.map_id)
@@ -99,6 +110,8 @@ mod tests {
         assert_eq!(k.query(QueryKind::Elevation), "rangegp/rover_1/query/elevation");
         assert_eq!(k.status(), "rangegp/rover_1/status");
         assert_eq!(k.alive(), "rangegp/rover_1/@alive");
+        assert_eq!(k.map_updates(), "rangegp/rover_1/events/map");
+        assert_eq!(k.echo(), "rangegp/rover_1/echo");
         assert_eq!(k.scan_service(), "rangegp/rover_1/scans");
     }
 

@@ -203,6 +203,57 @@ pub struct HyperparametersInfo {
     pub nugget: f64,
 }
 
+/// Percentiles of one latency over the daemon's most recent samples (a bounded ring).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct LatencySummary {
+    /// Samples since start.
+    pub count: u64,
+    /// Median of the recent samples, milliseconds.
+    pub p50_ms: f64,
+    /// 90th percentile, milliseconds.
+    pub p90_ms: f64,
+    /// 99th percentile, milliseconds.
+    pub p99_ms: f64,
+    /// Largest recent sample, milliseconds.
+    pub max_ms: f64,
+}
+
+/// Server-side query latencies (receipt by a worker to reply sent), one per query kind.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct QueryLatencies {
+    /// `query/elevation`.
+    pub elevation: LatencySummary,
+    /// `query/variance`.
+    pub variance: LatencySummary,
+    /// `query/ray`.
+    pub ray: LatencySummary,
+    /// `query/grid`.
+    pub grid: LatencySummary,
+    /// `status`.
+    pub status: LatencySummary,
+}
+
+/// The world aggregate's size and counters.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct AggregateInfo {
+    /// Whether the daemon folds scans into an aggregate.
+    pub enabled: bool,
+    /// Fused cells held now.
+    pub cells: u64,
+    /// Fitted tiles held now.
+    pub tiles: u64,
+    /// Radius around the newest sensor position beyond which tiles are evicted, metres.
+    pub radius_m: f64,
+    /// Scans folded in since start.
+    pub inserts: u64,
+    /// Fitted scans the aggregate passed over (it takes the newest; the window still has them).
+    pub skipped: u64,
+    /// Inserts that failed (the aggregate kept its previous state).
+    pub failed: u64,
+    /// Tiles evicted for being beyond `radius_m`.
+    pub evicted_tiles: u64,
+}
+
 /// The daemon's state and counters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StatusReply {
@@ -232,16 +283,41 @@ pub struct StatusReply {
     pub window_len: u32,
     /// Window capacity.
     pub window_capacity: u32,
+    /// The world aggregate.
+    pub aggregate: AggregateInfo,
     /// Hyperparameters in use.
     pub hyperparameters: HyperparametersInfo,
-    /// Duration of the last fit, milliseconds.
-    pub fit_ms_last: f64,
-    /// Mean fit duration since start, milliseconds.
-    pub fit_ms_mean: f64,
+    /// Fit of one scan into its local map.
+    pub fit_ms: LatencySummary,
+    /// Scan taken from shared memory to its map answering queries.
+    pub scan_to_queryable_ms: LatencySummary,
+    /// One aggregate insert (cells, tile refits, eviction).
+    pub aggregate_insert_ms: LatencySummary,
+    /// Query handling per kind.
+    pub query_ms: QueryLatencies,
     /// Queries answered successfully.
     pub queries_ok: u64,
     /// Queries answered with an error.
     pub queries_failed: u64,
+    /// Resident set size of the daemon process, MiB (`None` where the OS does not say).
+    pub rss_mb: Option<f64>,
+}
+
+/// Published on `rangegp/<map>/events/map` each time a scan's map starts answering queries.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapUpdate {
+    /// Protocol version of the event.
+    pub version: u32,
+    /// Publisher of the scan.
+    pub publisher_id: u64,
+    /// Its sequence number.
+    pub sequence: u64,
+    /// Its acquisition time, ns since the Unix epoch.
+    pub stamp_ns: u64,
+    /// Scan taken from shared memory to queryable, milliseconds (daemon clock).
+    pub latency_ms: f64,
+    /// Local maps in the window now.
+    pub window_len: u32,
 }
 
 /// Machine-readable error class of a failed query.

@@ -46,6 +46,25 @@ pub struct Config {
     pub zenoh: ZenohConfig,
     /// Query limits.
     pub query: QueryConfig,
+    /// Prometheus metrics.
+    pub metrics: MetricsConfig,
+}
+
+/// Prometheus metrics endpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MetricsConfig {
+    /// `host:port` serving `GET /metrics` (loopback by default; port 0 picks one); empty: off.
+    /// A port that cannot be bound is logged and the daemon runs without metrics.
+    pub listen: String,
+}
+
+impl Default for MetricsConfig {
+    fn default() -> Self {
+        Self {
+            listen: "127.0.0.1:9464".into(),
+        }
+    }
 }
 
 /// Scan intake.
@@ -153,20 +172,27 @@ pub struct WindowConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AggregateConfig {
-    /// Fold every fitted scan into the aggregate (its own thread) and answer from it where no
-    /// window map sees a point. Off by default until its insert (57–159 ms per seed-000 scan,
-    /// sharing the cores with the fitter) is cheaper than a scan period: issue 5.
+    /// Fold fitted scans into the aggregate (its own thread) and answer from it where no window
+    /// map sees a point.
     pub enabled: bool,
     /// Fitted scans waiting for the aggregate at most; when it falls behind, the newest wins and
-    /// the displaced ones are counted.
+    /// the displaced ones are counted (the window still holds them).
     pub queue_len: usize,
+    /// Tiles farther than this from the newest sensor position are evicted (bounds memory:
+    /// about (2r / 2.5 m)² tiles of ~0.3 MB each), metres.
+    pub radius_m: f64,
+    /// At most one insert per this interval, milliseconds: the aggregate takes the newest fitted
+    /// scan at its own pace so that it never competes with the fitter for a whole core.
+    pub min_interval_ms: u64,
 }
 
 impl Default for AggregateConfig {
     fn default() -> Self {
         Self {
-            enabled: false,
-            queue_len: 4,
+            enabled: true,
+            queue_len: 1,
+            radius_m: 30.0,
+            min_interval_ms: 1000,
         }
     }
 }
@@ -209,6 +235,7 @@ impl Default for Config {
             aggregate: AggregateConfig::default(),
             zenoh: ZenohConfig::default(),
             query: QueryConfig::default(),
+            metrics: MetricsConfig::default(),
         }
     }
 }
@@ -234,7 +261,7 @@ impl Default for GpConfig {
             target: RangeTarget::Range,
             sphere_radius_m: 10.0,
             nugget_m2: 1e-6,
-            max_training_rays: 32_768,
+            max_training_rays: 8_192,
             max_rays_per_tile: 128,
             tile_overlap: 0.15,
             prior: PriorName::FlatGround,
@@ -319,8 +346,11 @@ impl Config {
         if !ordered(o.variance_bounds) || !ordered(o.length_scale_bounds) {
             return bad("gp.online bounds must be 0 < min < max");
         }
-        if self.aggregate.queue_len == 0 {
-            return bad("aggregate.queue_len must be positive");
+        if self.aggregate.queue_len == 0 || !positive(self.aggregate.radius_m) {
+            return bad("aggregate.queue_len and aggregate.radius_m must be positive");
+        }
+        if !self.metrics.listen.is_empty() && self.metrics.listen.parse::<std::net::SocketAddr>().is_err() {
+            return bad("metrics.listen must be host:port with an IP host (or empty to disable)");
         }
         if self.window.capacity == 0 {
             return bad("window.capacity must be positive");

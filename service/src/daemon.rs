@@ -5,15 +5,22 @@ use crate::config::Config;
 use crate::gp::hyper::OnlineHyperparameters;
 use crate::gp::Kernel;
 use crate::ingest::subscriber::IngestSettings;
-use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits};
+use crate::ingest::{
+    spawn_ingest, Arrival, IngestError, IngestHandle, LatestQueue, RejectReason, ValidationLimits,
+};
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
 use crate::map::local::{hyper_sample, HyperSample, MapParams, ScanInput};
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
+use crate::metrics::prometheus::Exporter;
 use crate::metrics::Metrics;
+use crate::priority::{lower_current_thread, Background};
 use crate::server::{QueryServer, ServerError, ServerState};
 use arc_swap::ArcSwap;
 use rangegp_client::transport::{zenoh_config, TransportConfigError};
+use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::msg::MapUpdate;
+use rangegp_proto::PROTOCOL_VERSION;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -54,6 +61,7 @@ pub struct Daemon {
     fitter: Option<JoinHandle<()>>,
     learner: Option<JoinHandle<()>>,
     aggregator: Option<JoinHandle<()>>,
+    exporter: Option<Exporter>,
     session: zenoh::Session,
 }
 
@@ -102,8 +110,19 @@ impl Daemon {
             window_capacity: config.window.capacity,
             kernel: Arc::clone(&kernel),
             nugget_m2: params.nugget_m2,
+            aggregate_radius_m: config.aggregate.enabled.then_some(config.aggregate.radius_m),
         });
         let server = QueryServer::start(&session, Arc::clone(&state), config.query.threads, 64)?;
+        let exporter = match config.metrics.listen.as_str() {
+            "" => None,
+            listen => Exporter::start(listen, Arc::clone(&metrics))
+                .inspect_err(|e| warn!(error = %e, "running without prometheus metrics"))
+                .ok(),
+        };
+        let updates = session
+            .declare_publisher(state.keys.map_updates())
+            .wait()
+            .map_err(|e| StartError::Zenoh(e.to_string()))?;
         let learner = if config.gp.online.enabled {
             let samples = Arc::new(LatestQueue::new(1));
             let (rx, kernel, metrics, shutdown) = (
@@ -127,9 +146,13 @@ impl Daemon {
         let (aggregate_feed, aggregator) = if config.aggregate.enabled {
             let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), Arc::clone(&shutdown));
+            let pace = AggregatePace {
+                radius_m: config.aggregate.radius_m,
+                min_interval: Duration::from_millis(config.aggregate.min_interval_ms),
+            };
             let thread = std::thread::Builder::new()
                 .name("rangegp-aggregate".into())
-                .spawn(move || aggregate_loop(&rx, &state, WorldParams::default(), &shutdown))?;
+                .spawn(move || aggregate_loop(&rx, &state, WorldParams::default(), pace, &shutdown))?;
             (Some(feed), Some(thread))
         } else {
             (None, None)
@@ -142,6 +165,7 @@ impl Daemon {
             let outputs = FitOutputs {
                 learner: feed,
                 aggregate: aggregate_feed,
+                updates,
             };
             std::thread::Builder::new()
                 .name("rangegp-fit".into())
@@ -187,6 +211,7 @@ impl Daemon {
             fitter: Some(fitter),
             learner: learner.map(|l| l.thread),
             aggregator,
+            exporter,
             session,
         })
     }
@@ -194,6 +219,11 @@ impl Daemon {
     /// Shared counters.
     pub fn metrics(&self) -> &Metrics {
         &self.state.metrics
+    }
+
+    /// Where Prometheus metrics are served, if they are.
+    pub fn metrics_addr(&self) -> Option<std::net::SocketAddr> {
+        self.exporter.as_ref().map(Exporter::addr)
     }
 
     /// The maps queries see now.
@@ -221,6 +251,7 @@ impl Daemon {
         if let Some(a) = self.aggregator.take() {
             let _ = a.join();
         }
+        self.exporter.take();
         if let Err(e) = self.session.close().wait() {
             warn!(error = %e, "closing the zenoh session failed");
         }
@@ -244,10 +275,21 @@ struct FitOutputs {
     learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
     /// Fitted scans for the aggregate thread.
     aggregate: Option<Arc<AggregateFeed>>,
+    /// Where a [`MapUpdate`] goes when a scan's map is published.
+    updates: zenoh::pubsub::Publisher<'static>,
+}
+
+/// How the aggregate thread paces itself and bounds its area.
+#[derive(Debug, Clone, Copy)]
+struct AggregatePace {
+    /// Evict tiles beyond this distance from the newest sensor position, metres.
+    radius_m: f64,
+    /// At most one insert per interval.
+    min_interval: Duration,
 }
 
 fn fit_loop(
-    queue: &LatestQueue<ScanInput>,
+    queue: &LatestQueue<Arrival>,
     state: &ServerState,
     mut params: MapParams,
     capacity: usize,
@@ -256,7 +298,7 @@ fn fit_loop(
 ) {
     let mut window = Window::new(capacity);
     while !shutdown.load(Ordering::Relaxed) {
-        let Some(scan) = queue.pop_timeout(Duration::from_millis(50)) else {
+        let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
             continue;
         };
         let _span = info_span!(
@@ -281,8 +323,13 @@ fn fit_loop(
                     maps: maps.clone(),
                     aggregate: old.aggregate.clone(),
                 });
-                state.metrics.record_fit(started.elapsed());
-                state.metrics.accepted.fetch_add(1, Ordering::Relaxed);
+                let latency = received.elapsed();
+                let m = &state.metrics;
+                m.fit.record(started.elapsed());
+                m.scan_to_queryable.record(latency);
+                m.window_len.store(maps.len() as u64, Ordering::Relaxed);
+                m.accepted.fetch_add(1, Ordering::Relaxed);
+                announce(&outputs.updates, &scan, latency, maps.len());
                 if let Some((samples, subset)) = &outputs.learner {
                     samples.push(hyper_sample(&scan, &params, *subset));
                 }
@@ -300,11 +347,59 @@ fn fit_loop(
     }
 }
 
-/// Folds fitted scans into the world aggregate: each insert goes into a copy of the published map
-/// (tiles are shared, so a copy costs the cells), which is then published. A failed insert is
-/// counted and logged; the published map stays as it was.
-fn aggregate_loop(feed: &AggregateFeed, state: &ServerState, params: WorldParams, shutdown: &AtomicBool) {
+/// Tells subscribers (planners, `rangegp load`) that a scan's map answers queries now.
+fn announce(
+    updates: &zenoh::pubsub::Publisher<'static>,
+    scan: &ScanInput,
+    latency: Duration,
+    window_len: usize,
+) {
+    let event = MapUpdate {
+        version: PROTOCOL_VERSION,
+        publisher_id: scan.publisher_id,
+        sequence: scan.sequence,
+        stamp_ns: scan.stamp_ns,
+        latency_ms: latency.as_secs_f64() * 1e3,
+        window_len: window_len as u32,
+    };
+    match codec::encode(Encoding::Bincode, &event) {
+        Ok(bytes) => {
+            if let Err(e) = updates.put(bytes).encoding(Encoding::Bincode.mime()).wait() {
+                debug!(error = %e, "map update not published");
+            }
+        }
+        Err(e) => warn!(error = %e, "cannot encode a map update"),
+    }
+}
+
+/// Folds fitted scans into the world aggregate at most once per `pace.min_interval`, newest
+/// first: each insert goes into a copy of the published map (tiles are shared, so a copy costs
+/// the cells), tiles beyond `pace.radius_m` of the sensor are evicted, and the copy is
+/// published. A failed insert is counted and logged; the published map stays as it was.
+fn aggregate_loop(
+    feed: &AggregateFeed,
+    state: &ServerState,
+    params: WorldParams,
+    pace: AggregatePace,
+    shutdown: &AtomicBool,
+) {
     let mut world = Arc::new(WorldAggregate::new(params));
+    let m = &state.metrics;
+    // One worker of its own: the aggregate's parallel loops must not queue the fitter's tiles
+    // behind a whole insert in the shared pool (seen as 100 ms fit spikes).
+    lower_current_thread(Background::Idle);
+    let pool = match rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .thread_name(|_| "rangegp-aggregate-pool".into())
+        .start_handler(|_| lower_current_thread(Background::Idle))
+        .build()
+    {
+        Ok(pool) => pool,
+        Err(e) => {
+            warn!(error = %e, "cannot start the aggregate's worker; aggregate disabled");
+            return;
+        }
+    };
     while !shutdown.load(Ordering::Relaxed) {
         let Some((scan, map)) = feed.pop_timeout(Duration::from_millis(50)) else {
             continue;
@@ -315,21 +410,43 @@ fn aggregate_loop(feed: &AggregateFeed, state: &ServerState, params: WorldParams
             sequence = scan.sequence
         )
         .entered();
+        let started = Instant::now();
         let mut next = WorldAggregate::clone(&world);
-        match next.insert(&scan, &map) {
+        match pool.install(|| next.insert(&scan, &map)) {
             Ok(()) => {
+                let s = map.sensor_position();
+                let evicted = next.evict_beyond(s.x, s.y, pace.radius_m);
                 world = Arc::new(next);
                 state.snapshot.rcu(|old| MapSnapshot {
                     maps: old.maps.clone(),
                     aggregate: Some(Arc::clone(&world)),
                 });
-                state.metrics.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
-                debug!(cells = world.len(), tiles = world.tiles(), "aggregate updated");
+                m.aggregate_insert.record(started.elapsed());
+                m.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
+                m.aggregate_evicted_tiles
+                    .fetch_add(evicted as u64, Ordering::Relaxed);
+                m.aggregate_cells.store(world.len() as u64, Ordering::Relaxed);
+                m.aggregate_tiles.store(world.tiles() as u64, Ordering::Relaxed);
+                debug!(
+                    cells = world.len(),
+                    tiles = world.tiles(),
+                    evicted,
+                    "aggregate updated"
+                );
             }
             Err(e) => {
-                state.metrics.aggregate_failed.fetch_add(1, Ordering::Relaxed);
+                m.aggregate_failed.fetch_add(1, Ordering::Relaxed);
                 warn!(error = %e, "aggregate insert failed; scan kept in the window only");
             }
+        }
+        let rest = pace.min_interval.saturating_sub(started.elapsed());
+        let until = Instant::now() + rest;
+        while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
+            std::thread::sleep(
+                until
+                    .saturating_duration_since(Instant::now())
+                    .min(Duration::from_millis(50)),
+            );
         }
     }
 }
@@ -343,6 +460,7 @@ fn hyper_loop(
     metrics: &Metrics,
     shutdown: &AtomicBool,
 ) {
+    lower_current_thread(Background::Idle);
     while !shutdown.load(Ordering::Relaxed) {
         let Some(sample) = samples.pop_timeout(Duration::from_millis(50)) else {
             continue;

@@ -5,7 +5,8 @@
 //! - [`ingest`]: the iceoryx2 subscriber thread and scan validation.
 //! - [`server`]: Zenoh queryables and the query worker pool.
 //! - [`daemon`]: wiring of the above.
-//! - [`config`], [`metrics`]: TOML configuration, counters.
+//! - [`config`], [`metrics`]: TOML configuration, counters, latencies, the Prometheus exporter.
+//! - [`priority`]: background threads yield to the latency-critical ones.
 //! - [`demo`], [`plot`]: the self-contained demo and its pictures.
 
 pub mod bench;
@@ -18,4 +19,5 @@ pub mod ingest;
 pub mod map;
 pub mod metrics;
 pub use rangegp_client::plot;
+pub mod priority;
 pub mod server;

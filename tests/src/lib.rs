@@ -51,6 +51,7 @@ impl Harness {
         };
         config.zenoh.listen = vec![endpoint.clone()];
         config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
+        config.metrics.listen = "127.0.0.1:0".into();
         tweak(&mut config);
         let daemon = Daemon::start(&config)?;
         let client = Client::builder(&config.map_id)

@@ -56,7 +56,7 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
         assert_eq!(refused.code, ErrorCode::UnsupportedVersion, "{enc:?}");
     }
     // JSON in, JSON out: what a Python planner sends.
-    let body = br#"{"version":1,"points":[[1.0,2.0]]}"#.to_vec();
+    let body = br#"{"version":2,"points":[[1.0,2.0]]}"#.to_vec();
     let reply = c.call_raw(&key, body, Encoding::Json)?.expect("json answer");
     let parsed: ElevationReply = serde_json::from_slice(&reply)?;
     assert_eq!(parsed.items.len(), 1);

@@ -2,6 +2,7 @@
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
+use rangegp_client::load::{self, LoadOptions};
 use rangegp_client::plot::{save_heatmap, Raster};
 use rangegp_client::scangen::{now_ns, ScanGenerator};
 use rangegp_client::{Client, ScanPublisher};
@@ -74,6 +75,40 @@ enum Command {
         /// Print every cell.
         #[arg(long)]
         json: bool,
+    },
+    /// Load test: publish simulated scans at a sensor's rate while planners query; measures
+    /// scan-to-queryable latency, skipped scans, round trips against a bare Zenoh echo and the
+    /// daemon's RSS; writes OUT/summary.json.
+    Load {
+        #[command(flatten)]
+        connection: Connection,
+        /// iceoryx2 scan service name (default `rangegp/<map-id>/scans`).
+        #[arg(long)]
+        service: Option<String>,
+        /// Sensor preset: seed000, vlp16 or os1-64.
+        #[arg(long, default_value = "os1-64")]
+        preset: String,
+        /// Scans per second.
+        #[arg(long, default_value_t = 10.0)]
+        rate_hz: f64,
+        /// Length of the timed run, seconds.
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// Simulated planners, each on its own Zenoh session.
+        #[arg(long, default_value_t = 2)]
+        planners: usize,
+        /// Query rounds per second per planner.
+        #[arg(long, default_value_t = 20.0)]
+        planner_hz: f64,
+        /// World seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Metres between poses.
+        #[arg(long, default_value_t = 0.5)]
+        step_m: f64,
+        /// Output directory.
+        #[arg(long, default_value = "load-out")]
+        out: std::path::PathBuf,
     },
     /// Publish simulated scans along a path at a rate (the scan generator).
     Scangen {
@@ -199,6 +234,39 @@ fn main() -> Result<()> {
                 });
                 println!("{}", serde_json::to_string_pretty(&summary)?);
             }
+        }
+        Command::Load {
+            connection,
+            service,
+            preset,
+            rate_hz,
+            seconds,
+            planners,
+            planner_hz,
+            seed,
+            step_m,
+            out,
+        } => {
+            let preset = ScannerPreset::by_name(&preset)
+                .with_context(|| format!("unknown preset {preset:?}: seed000, vlp16, os1-64"))?;
+            let opts = LoadOptions {
+                service: service.unwrap_or_else(|| format!("rangegp/{}/scans", connection.map_id)),
+                connect: connection.connect,
+                map_id: connection.map_id,
+                preset,
+                rate_hz,
+                seconds,
+                planners,
+                planner_hz,
+                seed,
+                step_m,
+                // A fresh id per run: the daemon refuses replayed (publisher, sequence) pairs.
+                publisher_id: now_ns(),
+                out,
+                timeout: Duration::from_secs_f64(connection.timeout_s),
+            };
+            let summary = load::run(&opts, |line| eprintln!("{line}"))?;
+            load::print(&summary, &opts.out);
         }
         Command::Scangen {
             service,

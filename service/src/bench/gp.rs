@@ -103,7 +103,12 @@ fn time<T>(f: impl FnOnce() -> T) -> (T, f64) {
 
 /// Scans of `preset` along a wander path on the default cratered terrain, validated exactly as
 /// the daemon validates them.
-fn scans(terrain: &Heightmap, preset: &ScannerPreset, count: usize, seed: u64) -> Result<Vec<ScanInput>> {
+pub(crate) fn scans(
+    terrain: &Heightmap,
+    preset: &ScannerPreset,
+    count: usize,
+    seed: u64,
+) -> Result<Vec<ScanInput>> {
     let path = Path::wander(seed, terrain, count, 4.0, 0.3);
     let mut rng = Pcg64::seed_from_u64(seed);
     (0..count)

@@ -4,6 +4,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 use rangegp_service::bench::gp::{print_gp, run_gp, GpBenchOptions};
 use rangegp_service::bench::hyper::{print_hyper, run_hyper, HyperOptions};
+use rangegp_service::bench::query::{print_query, run_query, QueryBenchOptions};
 
 #[derive(Parser)]
 #[command(
@@ -21,6 +22,8 @@ enum Command {
     Gp(GpBenchOptions),
     /// Online against batch (per-scan) hyperparameters on random seed-000 scans.
     Hyper(HyperOptions),
+    /// CPU time per answered item of each query kind against a full window.
+    Query(QueryBenchOptions),
 }
 
 fn main() -> Result<()> {
@@ -29,6 +32,11 @@ fn main() -> Result<()> {
             let report = run_gp(&opts)?;
             print_gp(&report);
             println!("  written: {}", opts.out.join("gp.json").display());
+        }
+        Command::Query(opts) => {
+            let report = run_query(&opts)?;
+            print_query(&report);
+            println!("  written: {}", opts.out.join("query.json").display());
         }
         Command::Hyper(opts) => {
             let report = run_hyper(&opts)?;

@@ -3,7 +3,7 @@
 
 use super::queue::LatestQueue;
 use super::validate::{check_header, validate, SequenceTracker, ValidationLimits};
-use crate::map::local::ScanInput;
+use super::Arrival;
 use crate::metrics::Metrics;
 use iceoryx2::prelude::*;
 use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint};
@@ -79,7 +79,7 @@ impl IngestHandle {
 /// this returns is missed).
 pub fn spawn_ingest(
     settings: IngestSettings,
-    queue: Arc<LatestQueue<ScanInput>>,
+    queue: Arc<LatestQueue<Arrival>>,
     metrics: Arc<Metrics>,
     shutdown: Arc<AtomicBool>,
 ) -> Result<IngestHandle, IngestError> {
@@ -145,7 +145,7 @@ impl Intake {
     fn run(
         mut self,
         settings: &IngestSettings,
-        queue: &LatestQueue<ScanInput>,
+        queue: &LatestQueue<Arrival>,
         metrics: &Metrics,
         shutdown: &AtomicBool,
     ) {
@@ -153,6 +153,7 @@ impl Intake {
         while !shutdown.load(Ordering::Relaxed) {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
+                    let received = Instant::now();
                     let header = *sample.user_header();
                     let slice = sample.payload();
                     // The slice length lives in the publisher's memory: read it once, bound it.
@@ -171,7 +172,7 @@ impl Intake {
                     }
                     let points: Vec<ScanPoint> = slice[..header.point_count as usize].to_vec();
                     drop(sample);
-                    self.accept(header, &points, settings, queue, metrics);
+                    self.accept(header, &points, received, settings, queue, metrics);
                     continue;
                 }
                 Ok(None) => {}
@@ -197,8 +198,9 @@ impl Intake {
         &mut self,
         header: ScanHeader,
         points: &[ScanPoint],
+        received: Instant,
         settings: &IngestSettings,
-        queue: &LatestQueue<ScanInput>,
+        queue: &LatestQueue<Arrival>,
         metrics: &Metrics,
     ) {
         let checked = validate(&header, points, &settings.limits).and_then(|scan| {
@@ -210,9 +212,14 @@ impl Intake {
             Ok((scan, gaps)) => {
                 metrics.sequence_gaps.fetch_add(gaps, Ordering::Relaxed);
                 self.sequences.accept(scan.publisher_id, scan.sequence);
-                if let Some(old) = queue.push(scan) {
+                if let Some(old) = queue.push(Arrival { scan, received }) {
                     metrics.skipped.fetch_add(1, Ordering::Relaxed);
-                    warn!(sequence = old.sequence, "fitting behind: skipped an older scan");
+                    warn!(
+                        publisher = old.scan.publisher_id,
+                        sequence = old.scan.sequence,
+                        skipped_total = metrics.skipped.load(Ordering::Relaxed),
+                        "fitting behind: skipped an older scan"
+                    );
                 }
             }
             Err(reason) => {

@@ -286,29 +286,34 @@ impl LocalRangeMap {
     /// Surface height at map (x, y): the first crossing of the vertical line from above
     /// (MATH.md "From range to 3-D"), or `None` outside what this scan saw.
     pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+        let (top, span) = self.vertical_fov(x, y)?;
+        let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
+        let t = root::first_crossing(gap, 0.0, span, 24)?;
+        let var = self.root_variance(gap, &Vector3::new(x, y, top - t), t)?;
+        Some(HeightEstimate { z: top - t, var })
+    }
+
+    /// The part of the vertical line at (x, y) inside the observed field of view, as its top z
+    /// and length (angles only: cheap), or `None` when it misses the field of view.
+    fn vertical_fov(&self, x: f64, y: f64) -> Option<(f64, f64)> {
         let s = self.sensor_position();
         let rho = (x - s.x).hypot(y - s.y);
         if rho >= self.max_range {
             return None;
         }
         let half = (self.max_range * self.max_range - rho * rho).sqrt();
-        let point = |z: f64| Vector3::new(x, y, z);
-        // Narrow to the part of the vertical line inside the field of view (angles only: cheap).
         let coarse = 96;
         let (mut top, mut bottom) = (None, None);
         for k in 0..=coarse {
             let z = s.z + half - 2.0 * half * k as f64 / coarse as f64;
-            if self.look_at(&point(z)).is_some() {
+            if self.look_at(&Vector3::new(x, y, z)).is_some() {
                 top.get_or_insert(z);
                 bottom = Some(z);
             }
         }
         let step = 2.0 * half / coarse as f64;
         let (top, bottom) = (top? + step, bottom? - step);
-        let gap = |t: f64| self.gap(&point(top - t));
-        let t = root::first_crossing(gap, 0.0, top - bottom, 24)?;
-        let var = self.root_variance(gap, &point(top - t), t)?;
-        Some(HeightEstimate { z: top - t, var })
+        Some((top, top - bottom))
     }
 
     /// Casts a map-frame ray (unit `dir`) through this map's surface up to `max_range`.

@@ -1,6 +1,7 @@
 //! One request end to end: decode, check version and limits, evaluate, encode.
 
 use super::ServerState;
+use crate::map::aggregate::Aggregate;
 use crate::map::query;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
@@ -211,7 +212,7 @@ fn check_ray(i: usize, r: &Ray, state: &ServerState) -> Result<(), Failure> {
 
 fn status(state: &ServerState) -> StatusReply {
     let m = &state.metrics;
-    let (fit_ms_last, fit_ms_mean) = m.fit_ms();
+    let snap = state.snapshot.load();
     StatusReply {
         version: PROTOCOL_VERSION,
         map_id: state.keys.map_id().to_owned(),
@@ -224,8 +225,18 @@ fn status(state: &ServerState) -> StatusReply {
         hyperparameter_updates: m.hyper_updates.load(Relaxed),
         jittered_tiles: m.jittered_tiles.load(Relaxed),
         sequence_gaps: m.sequence_gaps.load(Relaxed),
-        window_len: state.snapshot.load().maps.len() as u32,
+        window_len: snap.maps.len() as u32,
         window_capacity: state.window_capacity as u32,
+        aggregate: AggregateInfo {
+            enabled: state.aggregate_radius_m.is_some(),
+            cells: snap.aggregate.as_ref().map_or(0, |a| a.len() as u64),
+            tiles: snap.aggregate.as_ref().map_or(0, |a| a.tiles() as u64),
+            radius_m: state.aggregate_radius_m.unwrap_or(0.0),
+            inserts: m.aggregate_inserts.load(Relaxed),
+            skipped: m.aggregate_skipped.load(Relaxed),
+            failed: m.aggregate_failed.load(Relaxed),
+            evicted_tiles: m.aggregate_evicted_tiles.load(Relaxed),
+        },
         hyperparameters: {
             let k = state.kernel.load();
             HyperparametersInfo {
@@ -235,9 +246,12 @@ fn status(state: &ServerState) -> StatusReply {
                 nugget: state.nugget_m2,
             }
         },
-        fit_ms_last,
-        fit_ms_mean,
+        fit_ms: m.fit.summary(),
+        scan_to_queryable_ms: m.scan_to_queryable.summary(),
+        aggregate_insert_ms: m.aggregate_insert.summary(),
+        query_ms: m.query_latencies(),
         queries_ok: m.queries_ok.load(Relaxed),
         queries_failed: m.queries_failed.load(Relaxed),
+        rss_mb: crate::metrics::rss_mb(),
     }
 }

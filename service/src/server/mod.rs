@@ -1,6 +1,8 @@
-//! The Zenoh query server: queryables for elevation, variance, ray and status, a liveliness
-//! token, and a bounded worker pool so that query load never touches ingest and overload is
-//! answered (`overloaded`) instead of timing out.
+//! The Zenoh query server: queryables for elevation, variance, ray, grid and status, a
+//! liveliness token, and a bounded worker pool so that query load never touches ingest and
+//! overload is answered (`overloaded`) instead of timing out. Requests of a few points are
+//! answered on the Zenoh callback directly (bounded work, no hand-off, never behind a batch).
+//! `rangegp/<map>/echo` returns the request's bytes from the callback: the transport floor.
 
 pub mod handler;
 
@@ -42,6 +44,8 @@ pub struct ServerState {
     pub kernel: Arc<ArcSwap<Kernel>>,
     /// Noise variance added to every training ray (for status).
     pub nugget_m2: f64,
+    /// Eviction radius of the aggregate when it is enabled (for status).
+    pub aggregate_radius_m: Option<f64>,
 }
 
 /// The server could not start.
@@ -106,21 +110,26 @@ impl QueryServer {
         let mut queryables = Vec::with_capacity(endpoints.len());
         for (key, endpoint) in endpoints {
             let tx = sender.clone();
-            let metrics = Arc::clone(&state.metrics);
+            let st = Arc::clone(&state);
             let q = session
                 .declare_queryable(&key)
                 .complete(true)
-                .callback(move |query| match tx.try_send((endpoint, query)) {
-                    Ok(()) => {}
-                    Err(TrySendError::Full((_, query))) | Err(TrySendError::Disconnected((_, query))) => {
-                        metrics
-                            .queries_failed
-                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        reply_error(
-                            &query,
-                            ErrorCode::Overloaded,
-                            "query queue full, retry later".into(),
-                        );
+                .callback(move |query| {
+                    if inline(endpoint, &query) {
+                        return serve(endpoint, &query, &st);
+                    }
+                    match tx.try_send((endpoint, query)) {
+                        Ok(()) => {}
+                        Err(TrySendError::Full((_, query))) | Err(TrySendError::Disconnected((_, query))) => {
+                            st.metrics
+                                .queries_failed
+                                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            reply_error(
+                                &query,
+                                ErrorCode::Overloaded,
+                                "query queue full, retry later".into(),
+                            );
+                        }
                     }
                 })
                 .wait()
@@ -130,6 +139,26 @@ impl QueryServer {
                 })?;
             queryables.push(q);
         }
+        let echo = state.keys.echo();
+        queryables.push(
+            session
+                .declare_queryable(&echo)
+                .complete(true)
+                .callback(|query| {
+                    let payload = query
+                        .payload()
+                        .map(|p| p.to_bytes().into_owned())
+                        .unwrap_or_default();
+                    if let Err(e) = query.reply(query.key_expr().clone(), payload).wait() {
+                        warn!(error = %e, "echo reply failed");
+                    }
+                })
+                .wait()
+                .map_err(|e| ServerError::Declare {
+                    what: echo.clone(),
+                    reason: e.to_string(),
+                })?,
+        );
         let alive = state.keys.alive();
         let token = session
             .liveliness()
@@ -165,40 +194,66 @@ impl Drop for QueryServer {
 }
 
 fn worker(receiver: &Mutex<Receiver<Job>>, state: &ServerState) {
+    crate::priority::lower_current_thread(crate::priority::Background::Batch);
     loop {
         let job = receiver.lock().unwrap_or_else(PoisonError::into_inner).recv();
         let Ok((endpoint, query)) = job else { return };
-        let encoding = query
-            .encoding()
-            .map(|e| Encoding::from_mime(&e.to_string()))
-            .unwrap_or_default();
-        let payload = query
-            .payload()
-            .map(|p| p.to_bytes().into_owned())
-            .unwrap_or_default();
-        match handler::answer(endpoint, encoding, &payload, state) {
-            Ok(bytes) => {
-                state
-                    .metrics
-                    .queries_ok
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                if let Err(e) = query
-                    .reply(query.key_expr().clone(), bytes)
-                    .encoding(encoding.mime())
-                    .wait()
-                {
-                    warn!(error = %e, "reply failed");
-                }
-            }
-            Err(f) => {
-                state
-                    .metrics
-                    .queries_failed
-                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                reply_error(&query, f.code, f.message);
+        serve(endpoint, &query, state);
+    }
+}
+
+/// Requests at most this large (a few points) are answered on the Zenoh callback itself:
+/// bounded work (tens of µs) that would otherwise pay a thread hand-off and wait behind batches.
+pub const INLINE_MAX_BYTES: usize = 64;
+
+/// Whether `query` is cheap enough to answer without a worker (elevation, variance, status).
+fn inline(endpoint: Endpoint, query: &Query) -> bool {
+    let small = query.payload().is_none_or(|p| p.len() <= INLINE_MAX_BYTES);
+    small
+        && matches!(
+            endpoint,
+            Endpoint::Status | Endpoint::Query(QueryKind::Elevation) | Endpoint::Query(QueryKind::Variance)
+        )
+}
+
+/// Answers one query and records its latency.
+fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) {
+    let started = std::time::Instant::now();
+    let encoding = query
+        .encoding()
+        .map(|e| Encoding::from_mime(&e.to_string()))
+        .unwrap_or_default();
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    match handler::answer(endpoint, encoding, &payload, state) {
+        Ok(bytes) => {
+            state
+                .metrics
+                .queries_ok
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            if let Err(e) = query
+                .reply(query.key_expr().clone(), bytes)
+                .encoding(encoding.mime())
+                .wait()
+            {
+                warn!(error = %e, "reply failed");
             }
         }
+        Err(f) => {
+            state
+                .metrics
+                .queries_failed
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            reply_error(query, f.code, f.message);
+        }
     }
+    let kind = match endpoint {
+        Endpoint::Query(k) => Some(k),
+        Endpoint::Status => None,
+    };
+    state.metrics.query(kind).record(started.elapsed());
 }
 
 fn reply_error(query: &Query, code: ErrorCode, message: String) {

@@ -131,6 +131,27 @@ impl WorldAggregate {
         self.refits
     }
 
+    /// Drops the tiles whose centre lies farther than `radius_m` from map (x, y), with the
+    /// cells they own, and returns how many tiles went. Neighbours keep their fits (their
+    /// margins may have trained on dropped cells) until a scan touches them again.
+    pub fn evict_beyond(&mut self, x: f64, y: f64, radius_m: f64) -> usize {
+        let side = self.params.tile_cells as f64 * self.params.cell_m;
+        let far = |&(ti, tj): &(i32, i32)| {
+            let (cx, cy) = ((ti as f64 + 0.5) * side, (tj as f64 + 0.5) * side);
+            (cx - x).hypot(cy - y) > radius_m
+        };
+        let owners: BTreeSet<(i32, i32)> = self.cells.keys().map(|&c| self.tile_of(c)).collect();
+        let gone: BTreeSet<(i32, i32)> = self.tiles.keys().copied().chain(owners).filter(far).collect();
+        if gone.is_empty() {
+            return 0;
+        }
+        let evicted = gone.iter().filter(|t| self.tiles.contains_key(t)).count();
+        self.tiles.retain(|t, _| !gone.contains(t));
+        let (n, cells) = (self.params.tile_cells, &mut self.cells);
+        cells.retain(|&(i, j), _| !gone.contains(&(i.div_euclid(n), j.div_euclid(n))));
+        evicted
+    }
+
     /// The fused cells, by index.
     pub fn cells(&self) -> &HashMap<(i32, i32), Cell> {
         &self.cells
@@ -362,6 +383,24 @@ mod tests {
             "{touched} of {}",
             agg.tiles()
         );
+    }
+
+    #[test]
+    fn eviction_drops_far_tiles_and_their_cells_only() {
+        let terrain = Heightmap::flat(80.0, 0.05, 0.0);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        fold(&mut agg, &terrain, -25.0, 0.0, 0.0);
+        fold(&mut agg, &terrain, 20.0, 0.0, 0.0);
+        let (tiles, near) = (agg.tiles(), agg.elevation(22.0, 1.0).expect("observed"));
+        let evicted = agg.evict_beyond(20.0, 0.0, 20.0);
+        assert!(
+            evicted > 0 && agg.tiles() == tiles - evicted,
+            "{evicted} of {tiles}"
+        );
+        assert!(agg.elevation(-25.0, 1.0).is_none(), "far scan forgotten");
+        assert!(agg.cells().keys().all(|&(i, _)| (i as f64 + 0.5) * 0.25 > -5.0));
+        assert_eq!(agg.elevation(22.0, 1.0), Some(near), "near tiles untouched");
+        assert_eq!(agg.evict_beyond(20.0, 0.0, 20.0), 0, "idempotent");
     }
 
     #[test]

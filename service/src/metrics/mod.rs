@@ -1,9 +1,14 @@
-//! Counters and timings the status query reports; lock-free, shared by all threads.
+//! Counters and latencies the status query reports and Prometheus scrapes; shared by all threads.
+
+pub mod latency;
+pub mod prometheus;
 
 use crate::ingest::validate::RejectReason;
-use rangegp_proto::msg::RejectionCount;
+pub use latency::Latency;
+use rangegp_proto::keys::QueryKind;
+use rangegp_proto::msg::{QueryLatencies, RejectionCount};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Daemon-wide counters.
 #[derive(Debug)]
@@ -28,9 +33,22 @@ pub struct Metrics {
     pub aggregate_skipped: AtomicU64,
     /// Fitted scans the aggregate could not fold in (its tile fit failed; the map keeps its state).
     pub aggregate_failed: AtomicU64,
-    fit_count: AtomicU64,
-    fit_ns_total: AtomicU64,
-    fit_ns_last: AtomicU64,
+    /// World-aggregate tiles evicted for lying beyond its radius.
+    pub aggregate_evicted_tiles: AtomicU64,
+    /// Local maps in the published window.
+    pub window_len: AtomicU64,
+    /// Fused cells in the published aggregate.
+    pub aggregate_cells: AtomicU64,
+    /// Fitted tiles in the published aggregate.
+    pub aggregate_tiles: AtomicU64,
+    /// Fit of one scan.
+    pub fit: Latency,
+    /// Scan taken from shared memory to its map published for queries.
+    pub scan_to_queryable: Latency,
+    /// One aggregate insert.
+    pub aggregate_insert: Latency,
+    /// Query handling, by [`QueryKind`] in [`QueryKind::ALL`] order, then status.
+    queries: [Latency; QueryKind::ALL.len() + 1],
     /// Queries answered.
     pub queries_ok: AtomicU64,
     /// Queries answered with an error.
@@ -51,9 +69,14 @@ impl Default for Metrics {
             aggregate_inserts: AtomicU64::new(0),
             aggregate_skipped: AtomicU64::new(0),
             aggregate_failed: AtomicU64::new(0),
-            fit_count: AtomicU64::new(0),
-            fit_ns_total: AtomicU64::new(0),
-            fit_ns_last: AtomicU64::new(0),
+            aggregate_evicted_tiles: AtomicU64::new(0),
+            window_len: AtomicU64::new(0),
+            aggregate_cells: AtomicU64::new(0),
+            aggregate_tiles: AtomicU64::new(0),
+            fit: Latency::default(),
+            scan_to_queryable: Latency::default(),
+            aggregate_insert: Latency::default(),
+            queries: std::array::from_fn(|_| Latency::default()),
             queries_ok: AtomicU64::new(0),
             queries_failed: AtomicU64::new(0),
         }
@@ -87,25 +110,33 @@ impl Metrics {
         self.rejected.iter().map(|c| c.load(Relaxed)).sum()
     }
 
-    /// Records one fit's duration.
-    pub fn record_fit(&self, took: Duration) {
-        let ns = took.as_nanos().min(u64::MAX as u128) as u64;
-        self.fit_count.fetch_add(1, Relaxed);
-        self.fit_ns_total.fetch_add(ns, Relaxed);
-        self.fit_ns_last.store(ns, Relaxed);
+    /// Latency of one query kind (`None`: status).
+    pub fn query(&self, kind: Option<QueryKind>) -> &Latency {
+        let i = kind.map_or(QueryKind::ALL.len(), |k| k as usize);
+        &self.queries[i]
     }
 
-    /// (last, mean) fit duration in milliseconds.
-    pub fn fit_ms(&self) -> (f64, f64) {
-        let n = self.fit_count.load(Relaxed).max(1) as f64;
-        (
-            self.fit_ns_last.load(Relaxed) as f64 / 1e6,
-            self.fit_ns_total.load(Relaxed) as f64 / n / 1e6,
-        )
+    /// Status percentiles of every query kind.
+    pub fn query_latencies(&self) -> QueryLatencies {
+        QueryLatencies {
+            elevation: self.query(Some(QueryKind::Elevation)).summary(),
+            variance: self.query(Some(QueryKind::Variance)).summary(),
+            ray: self.query(Some(QueryKind::Ray)).summary(),
+            grid: self.query(Some(QueryKind::Grid)).summary(),
+            status: self.query(None).summary(),
+        }
     }
 
     /// Seconds since start.
     pub fn uptime_s(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
     }
+}
+
+/// Resident set size of this process, MiB, from `/proc/self/status` (`None` off Linux).
+pub fn rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
 }

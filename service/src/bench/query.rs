@@ -1,0 +1,153 @@
+//! `rangegp-bench query`: CPU time per answered point of each query kind against a full window
+//! of seed-000 maps (and the world aggregate), on one thread — the cost behind a round trip.
+
+use super::gp::scans;
+use crate::config::Config;
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::aggregate::Aggregate;
+use crate::map::{query, LocalRangeMap, MapSnapshot, Window};
+use anyhow::Result;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use rangegp_proto::msg::Ray;
+use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Options of `rangegp-bench query`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct QueryBenchOptions {
+    /// Points (or rays) per timed pass.
+    #[arg(long, default_value_t = 2000)]
+    pub points: usize,
+    /// Timed passes (medians are reported).
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Output folder for query.json.
+    #[arg(long, default_value = "bench-out")]
+    pub out: PathBuf,
+}
+
+/// Microseconds of one thread per answered item, medians over the passes.
+#[derive(Debug, Clone, Serialize)]
+pub struct QueryReport {
+    /// Window maps queried.
+    pub window_maps: usize,
+    /// Elevation (window first, aggregate otherwise).
+    pub elevation_us: f64,
+    /// Variance only.
+    pub variance_us: f64,
+    /// Ray from a pose near the robot's, never visited.
+    pub ray_us: f64,
+    /// Elevation from the aggregate alone.
+    pub aggregate_elevation_us: f64,
+    /// Fraction of elevation points answered.
+    pub answered: f64,
+}
+
+fn per_item_us(repeats: usize, items: usize, mut pass: impl FnMut()) -> f64 {
+    let mut v: Vec<f64> = (0..repeats.max(1))
+        .map(|_| {
+            let t = Instant::now();
+            pass();
+            t.elapsed().as_secs_f64() * 1e6 / items.max(1) as f64
+        })
+        .collect();
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Runs the query benchmark and writes `query.json`.
+pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
+    std::fs::create_dir_all(&opts.out)?;
+    let config = Config::default();
+    let params = config.map_params();
+    let terrain = Heightmap::cratered(0, &CraterParams::default());
+    let inputs = scans(&terrain, &ScannerPreset::seed000(), config.window.capacity, 7)?;
+    let mut window = Window::new(config.window.capacity);
+    let mut world = WorldAggregate::new(WorldParams::default());
+    for scan in &inputs {
+        let map = LocalRangeMap::fit(scan, &params)?;
+        world.insert(scan, &map)?;
+        window.push(Arc::new(map));
+    }
+    let world = Arc::new(world);
+    let snapshot = MapSnapshot {
+        aggregate: Some(Arc::clone(&world)),
+        ..window.snapshot()
+    };
+    let mut rng = Pcg64::seed_from_u64(11);
+    let centre = inputs[inputs.len() - 1].pose.translation.vector;
+    let points: Vec<[f64; 2]> = (0..opts.points)
+        .map(|_| {
+            [
+                centre.x + rng.random_range(-6.0..6.0),
+                centre.y + rng.random_range(-6.0..6.0),
+            ]
+        })
+        .collect();
+    let rays: Vec<Ray> = points
+        .iter()
+        .map(|p| {
+            let a: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+            Ray {
+                origin_m: [p[0], p[1], centre.z + 0.3],
+                direction: [a.cos(), a.sin(), -0.25],
+                max_range_m: 15.0,
+            }
+        })
+        .collect();
+    let answered = points
+        .iter()
+        .filter(|p| query::elevation(&snapshot, p[0], p[1]).z_m.is_some())
+        .count() as f64
+        / points.len().max(1) as f64;
+    let n = points.len();
+    let report = QueryReport {
+        window_maps: snapshot.maps.len(),
+        elevation_us: per_item_us(opts.repeats, n, || {
+            points.iter().for_each(|p| {
+                std::hint::black_box(query::elevation(&snapshot, p[0], p[1]));
+            })
+        }),
+        variance_us: per_item_us(opts.repeats, n, || {
+            points.iter().for_each(|p| {
+                std::hint::black_box(query::variance(&snapshot, p[0], p[1]));
+            })
+        }),
+        ray_us: per_item_us(opts.repeats, n, || {
+            rays.iter().for_each(|r| {
+                std::hint::black_box(query::ray(&snapshot, r));
+            })
+        }),
+        aggregate_elevation_us: per_item_us(opts.repeats, n, || {
+            points.iter().for_each(|p| {
+                std::hint::black_box(world.elevation(p[0], p[1]));
+            })
+        }),
+        answered,
+    };
+    std::fs::write(
+        opts.out.join("query.json"),
+        serde_json::to_string_pretty(&report)?,
+    )?;
+    Ok(report)
+}
+
+/// Prints the report.
+pub fn print_query(r: &QueryReport) {
+    println!(
+        "rangegp-bench query: µs of one thread per item, window of {} seed-000 maps",
+        r.window_maps
+    );
+    println!(
+        "  elevation            {:>8.1} µs  ({:.0} % answered)",
+        r.elevation_us,
+        100.0 * r.answered
+    );
+    println!("  variance             {:>8.1} µs", r.variance_us);
+    println!("  ray (unvisited pose) {:>8.1} µs", r.ray_us);
+    println!("  aggregate elevation  {:>8.1} µs", r.aggregate_elevation_us);
+}

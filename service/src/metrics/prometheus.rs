@@ -1,0 +1,277 @@
+//! Prometheus text exposition of [`Metrics`] on a loopback HTTP port (`GET /metrics`).
+//!
+//! Counters and gauges are read from the daemon's own atomics at scrape time (one source of
+//! truth, no second bookkeeping); latencies are the histograms kept beside the status rings.
+//! `prometheus-client` (the Prometheus project's Rust client) does the encoding; `tiny_http`
+//! serves it from one small thread, independent of the async runtime and of the query workers.
+
+use super::{rss_mb, Latency, Metrics};
+use crate::ingest::validate::RejectReason;
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::MetricType;
+use prometheus_client::registry::Registry;
+use rangegp_proto::keys::QueryKind;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+use thiserror::Error;
+use tracing::{info, warn};
+
+/// The exporter could not start.
+#[derive(Debug, Error)]
+pub enum ExporterError {
+    /// The listen address could not be bound (in use, not local, malformed).
+    #[error("cannot listen for metrics on {addr}: {reason}")]
+    Bind {
+        /// Address asked for.
+        addr: String,
+        /// Cause.
+        reason: String,
+    },
+    /// The serving thread could not be spawned.
+    #[error("cannot spawn the metrics thread: {0}")]
+    Spawn(#[from] std::io::Error),
+}
+
+/// A running exporter; dropping it stops the thread.
+pub struct Exporter {
+    server: Arc<tiny_http::Server>,
+    addr: SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Exporter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Exporter").field("addr", &self.addr).finish()
+    }
+}
+
+impl Exporter {
+    /// Serves `metrics` at `http://<listen>/metrics` (port 0 picks a free port).
+    pub fn start(listen: &str, metrics: Arc<Metrics>) -> Result<Self, ExporterError> {
+        let bind_err = |reason: String| ExporterError::Bind {
+            addr: listen.to_owned(),
+            reason,
+        };
+        let server = tiny_http::Server::http(listen).map_err(|e| bind_err(e.to_string()))?;
+        let addr = server
+            .server_addr()
+            .to_ip()
+            .ok_or_else(|| bind_err("not an IP address".into()))?;
+        let server = Arc::new(server);
+        let mut registry = Registry::with_prefix("rangegp");
+        registry.register_collector(Box::new(DaemonCollector(metrics)));
+        let stop = Arc::new(AtomicBool::new(false));
+        let thread = {
+            let (server, stop) = (Arc::clone(&server), Arc::clone(&stop));
+            std::thread::Builder::new()
+                .name("rangegp-metrics".into())
+                .spawn(move || serve(&server, &registry, &stop))?
+        };
+        info!(%addr, "prometheus metrics at http://{addr}/metrics");
+        Ok(Self {
+            server,
+            addr,
+            stop,
+            thread: Some(thread),
+        })
+    }
+
+    /// The bound address (useful with port 0).
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+}
+
+impl Drop for Exporter {
+    fn drop(&mut self) {
+        self.stop.store(true, Relaxed);
+        self.server.unblock();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn serve(server: &tiny_http::Server, registry: &Registry, stop: &AtomicBool) {
+    while !stop.load(Relaxed) {
+        let request = match server.recv_timeout(Duration::from_millis(200)) {
+            Ok(Some(r)) => r,
+            Ok(None) => continue,
+            Err(e) => {
+                warn!(error = %e, "metrics listener failed");
+                return;
+            }
+        };
+        let path = request.url().split('?').next().unwrap_or("");
+        let response = if path == "/metrics" {
+            let mut body = String::new();
+            match prometheus_client::encoding::text::encode(&mut body, registry) {
+                Ok(()) => match tiny_http::Header::from_bytes("Content-Type", CONTENT_TYPE) {
+                    Ok(h) => tiny_http::Response::from_string(body).with_header(h),
+                    Err(()) => tiny_http::Response::from_string(body),
+                },
+                Err(_) => tiny_http::Response::from_string("encoding failed").with_status_code(500),
+            }
+        } else {
+            tiny_http::Response::from_string("see /metrics").with_status_code(404)
+        };
+        if let Err(e) = request.respond(response) {
+            warn!(error = %e, "metrics response failed");
+        }
+    }
+}
+
+/// OpenMetrics text, what `prometheus_client::encoding::text` writes.
+const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+
+/// Encodes the daemon's metrics on each scrape.
+#[derive(Debug)]
+struct DaemonCollector(Arc<Metrics>);
+
+fn counter(enc: &mut DescriptorEncoder, name: &str, help: &str, value: u64) -> std::fmt::Result {
+    let c = ConstCounter::new(value);
+    c.encode(enc.encode_descriptor(name, help, None, c.metric_type())?)
+}
+
+fn gauge(enc: &mut DescriptorEncoder, name: &str, help: &str, value: f64) -> std::fmt::Result {
+    let g = ConstGauge::new(value);
+    g.encode(enc.encode_descriptor(name, help, None, g.metric_type())?)
+}
+
+fn histogram(enc: &mut DescriptorEncoder, name: &str, help: &str, latency: &Latency) -> std::fmt::Result {
+    let h = latency.histogram();
+    h.encode(enc.encode_descriptor(name, help, None, h.metric_type())?)
+}
+
+impl Collector for DaemonCollector {
+    fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
+        let m = &self.0;
+        let e = &mut enc;
+        counter(
+            e,
+            "scans_received",
+            "Scans taken from shared memory",
+            m.received.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "scans_accepted",
+            "Scans fitted into the window",
+            m.accepted.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "scans_skipped",
+            "Valid scans skipped: fitting fell behind",
+            m.skipped.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "sequence_gaps",
+            "Missing sequence numbers",
+            m.sequence_gaps.load(Relaxed),
+        )?;
+        {
+            let mut family = e.encode_descriptor(
+                "scans_rejected",
+                "Scans rejected, by reason",
+                None,
+                MetricType::Counter,
+            )?;
+            for &r in RejectReason::ALL.iter() {
+                ConstCounter::new(m.rejected(r)).encode(family.encode_family(&[("reason", r.as_str())])?)?;
+            }
+        }
+        counter(e, "queries_ok", "Queries answered", m.queries_ok.load(Relaxed))?;
+        counter(
+            e,
+            "queries_failed",
+            "Queries answered with an error",
+            m.queries_failed.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_inserts",
+            "Scans folded into the aggregate",
+            m.aggregate_inserts.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_skipped",
+            "Fitted scans the aggregate passed over",
+            m.aggregate_skipped.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_failed",
+            "Failed aggregate inserts",
+            m.aggregate_failed.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_evicted_tiles",
+            "Aggregate tiles evicted beyond the radius",
+            m.aggregate_evicted_tiles.load(Relaxed),
+        )?;
+        gauge(
+            e,
+            "window_maps",
+            "Local maps in the window",
+            m.window_len.load(Relaxed) as f64,
+        )?;
+        gauge(
+            e,
+            "aggregate_cells",
+            "Fused aggregate cells",
+            m.aggregate_cells.load(Relaxed) as f64,
+        )?;
+        gauge(
+            e,
+            "aggregate_tiles",
+            "Fitted aggregate tiles",
+            m.aggregate_tiles.load(Relaxed) as f64,
+        )?;
+        gauge(e, "uptime_seconds", "Seconds since start", m.uptime_s())?;
+        if let Some(mb) = rss_mb() {
+            gauge(
+                e,
+                "resident_memory_bytes",
+                "Resident set size",
+                mb * 1024.0 * 1024.0,
+            )?;
+        }
+        histogram(e, "fit_seconds", "Fit of one scan", &m.fit)?;
+        histogram(
+            e,
+            "scan_to_queryable_seconds",
+            "Scan taken from shared memory to its map answering queries",
+            &m.scan_to_queryable,
+        )?;
+        histogram(
+            e,
+            "aggregate_insert_seconds",
+            "One aggregate insert",
+            &m.aggregate_insert,
+        )?;
+        let mut family = e.encode_descriptor(
+            "query_seconds",
+            "Query handling by kind",
+            None,
+            MetricType::Histogram,
+        )?;
+        let kinds = QueryKind::ALL.iter().map(|&k| (Some(k), k.as_str()));
+        for (kind, name) in kinds.chain([(None, "status")]) {
+            m.query(kind)
+                .histogram()
+                .encode(family.encode_family(&[("kind", name)])?)?;
+        }
+        Ok(())
+    }
+}
