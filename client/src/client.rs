@@ -253,10 +253,7 @@ impl Client {
     pub fn echo(&self, payload: Vec<u8>) -> Result<Vec<u8>, ClientError> {
         match self.call_raw(&self.keys.echo(), payload, Encoding::Bincode)? {
             Ok(bytes) => Ok(bytes),
-            Err(e) => Err(ClientError::Server {
-                code: e.code,
-                message: e.message,
-            }),
+            Err(e) => Err(e.into()),
         }
     }
 
@@ -287,10 +284,7 @@ impl Client {
         let payload = codec::encode(self.encoding, req)?;
         match self.call_raw(key, payload, self.encoding)? {
             Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
-            Err(e) => Err(ClientError::Server {
-                code: e.code,
-                message: e.message,
-            }),
+            Err(e) => Err(e.into()),
         }
     }
 
@@ -315,10 +309,16 @@ impl Client {
             .map_err(|_| ClientError::Timeout(self.timeout))?;
         match decode_reply(reply, self.encoding)? {
             Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),
-            Err(e) => Err(ClientError::Server {
-                code: e.code,
-                message: e.message,
-            }),
+            Err(e) => Err(e.into()),
+        }
+    }
+}
+
+impl From<ErrorReply> for ClientError {
+    fn from(e: ErrorReply) -> Self {
+        ClientError::Server {
+            code: e.code,
+            message: e.message,
         }
     }
 }

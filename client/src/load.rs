@@ -9,6 +9,7 @@
 //! fit, publication and the event's Zenoh hop all included).
 
 use crate::scangen::{now_ns, GeneratedScan, ScanGenerator};
+use crate::stats::percentile;
 use crate::{Client, ScanPublisher};
 use anyhow::{bail, Context, Result};
 use rand::{Rng, SeedableRng};
@@ -130,14 +131,9 @@ pub struct LoadSummary {
     pub aggregate_cells_tiles: [u64; 2],
 }
 
-/// Nearest-rank percentile of `v` (sorted here), 0 when empty.
-fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    let rank = (q * v.len() as f64).ceil() as usize;
-    v[rank.clamp(1, v.len()) - 1]
+/// [`percentile`], 0 when nothing was measured (a figure of the summary).
+fn pct(v: &mut [f64], q: f64) -> f64 {
+    percentile(v, q).unwrap_or(0.0)
 }
 
 /// Distinct scans held in memory and replayed (the path is driven forth and back).
@@ -385,8 +381,8 @@ pub fn run(opts: &LoadOptions, log: impl Fn(&str)) -> Result<LoadSummary> {
             RttSummary {
                 count: v.len(),
                 errors,
-                p50_us: percentile(&mut v, 0.5),
-                p99_us: percentile(&mut v, 0.99),
+                p50_us: pct(&mut v, 0.5),
+                p99_us: pct(&mut v, 0.99),
                 p50_over_echo: 0.0,
             },
         );
@@ -417,8 +413,8 @@ pub fn run(opts: &LoadOptions, log: impl Fn(&str)) -> Result<LoadSummary> {
         scans_skipped: delta(|s| s.scans_skipped),
         scans_rejected: delta(|s| s.scans_rejected),
         scans_without_update: without,
-        scan_to_queryable_p50_ms: percentile(&mut latencies, 0.5),
-        scan_to_queryable_p99_ms: percentile(&mut latencies, 0.99),
+        scan_to_queryable_p50_ms: pct(&mut latencies, 0.5),
+        scan_to_queryable_p99_ms: pct(&mut latencies, 0.99),
         scan_to_queryable_max_ms: latencies.iter().copied().fold(0.0, f64::max),
         daemon_scan_to_queryable_p99_ms: end_status.scan_to_queryable_ms.p99_ms,
         daemon_fit_ms: [end_status.fit_ms.p50_ms, end_status.fit_ms.p99_ms],

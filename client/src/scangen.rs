@@ -101,25 +101,38 @@ impl ScanGenerator {
 
     /// Simulates the scan at waypoint `i` (noise drawn from the generator's stream).
     pub fn scan(&mut self, i: usize, stamp_ns: u64) -> GeneratedScan {
-        let mut rng = std::mem::replace(&mut self.rng, Pcg64::seed_from_u64(0));
-        let scan = self.scan_with(i, stamp_ns, &mut rng);
-        self.rng = rng;
-        scan
+        let Self {
+            terrain,
+            path,
+            preset,
+            rng,
+            ..
+        } = self;
+        generate(terrain, path, preset, i, stamp_ns, rng)
     }
 
     /// Simulates the scan at waypoint `i` with noise from a stream of its own, so that scans
     /// can be made in parallel and still reproducibly.
     pub fn scan_independent(&self, i: usize, stamp_ns: u64) -> GeneratedScan {
         let stream = (self.seed ^ 0x1dea).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ i as u64;
-        self.scan_with(i, stamp_ns, &mut Pcg64::seed_from_u64(stream))
+        let rng = &mut Pcg64::seed_from_u64(stream);
+        generate(&self.terrain, &self.path, &self.preset, i, stamp_ns, rng)
     }
+}
 
-    fn scan_with(&self, i: usize, stamp_ns: u64, rng: &mut Pcg64) -> GeneratedScan {
-        let pose = self.path.pose(&self.terrain, i, self.preset.mount_height_m);
-        let rays = simulate_scan(&self.terrain, &pose, &self.preset, rng);
-        let (header, points) = to_message(&self.preset, &pose, &rays, stamp_ns);
-        GeneratedScan { header, points, pose }
-    }
+/// The scan at waypoint `i` of `path`, noise drawn from `rng`.
+fn generate(
+    terrain: &Heightmap,
+    path: &Path,
+    preset: &ScannerPreset,
+    i: usize,
+    stamp_ns: u64,
+    rng: &mut Pcg64,
+) -> GeneratedScan {
+    let pose = path.pose(terrain, i, preset.mount_height_m);
+    let rays = simulate_scan(terrain, &pose, preset, rng);
+    let (header, points) = to_message(preset, &pose, &rays, stamp_ns);
+    GeneratedScan { header, points, pose }
 }
 
 /// Nanoseconds since the Unix epoch now (0 if the clock is before 1970).

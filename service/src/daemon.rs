@@ -115,7 +115,7 @@ impl Daemon {
         let server = QueryServer::start(&session, Arc::clone(&state), config.query.threads, 64)?;
         let exporter = match config.metrics.listen.as_str() {
             "" => None,
-            listen => Exporter::start(listen, Arc::clone(&metrics))
+            listen => Exporter::start(listen, Arc::clone(&state))
                 .inspect_err(|e| warn!(error = %e, "running without prometheus metrics"))
                 .ok(),
         };
@@ -327,7 +327,6 @@ fn fit_loop(
                 let m = &state.metrics;
                 m.fit.record(started.elapsed());
                 m.scan_to_queryable.record(latency);
-                m.window_len.store(maps.len() as u64, Ordering::Relaxed);
                 m.accepted.fetch_add(1, Ordering::Relaxed);
                 announce(&outputs.updates, &scan, latency, maps.len());
                 if let Some((samples, subset)) = &outputs.learner {
@@ -425,8 +424,6 @@ fn aggregate_loop(
                 m.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
                 m.aggregate_evicted_tiles
                     .fetch_add(evicted as u64, Ordering::Relaxed);
-                m.aggregate_cells.store(world.len() as u64, Ordering::Relaxed);
-                m.aggregate_tiles.store(world.tiles() as u64, Ordering::Relaxed);
                 debug!(
                     cells = world.len(),
                     tiles = world.tiles(),

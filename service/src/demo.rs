@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_client::scangen::{now_ns, ScanGenerator};
+use rangegp_client::stats::percentile;
 use rangegp_client::transport::free_loopback_endpoint;
 use rangegp_client::{Client, ScanPublisher};
 use rangegp_sim::ScannerPreset;
@@ -168,11 +169,11 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
         points_observed: errors.len(),
         points_unobserved: unobserved,
         elevation_rmse_m: rms(&errors),
-        elevation_median_abs_m: percentile(&mut errors.iter().map(|e| e.abs()).collect::<Vec<_>>(), 0.5),
+        elevation_median_abs_m: pct(&mut errors.iter().map(|e| e.abs()).collect::<Vec<_>>(), 0.5),
         mean_sigma_m: sigmas.iter().sum::<f64>() / sigmas.len().max(1) as f64,
         coverage95: covered as f64 / errors.len().max(1) as f64,
-        query_p50_us: percentile(&mut rtts, 0.50),
-        query_p99_us: percentile(&mut rtts, 0.99),
+        query_p50_us: pct(&mut rtts, 0.50),
+        query_p99_us: pct(&mut rtts, 0.99),
         fit_ms_p50: status.fit_ms.p50_ms,
         scan_to_queryable_p99_ms: status.scan_to_queryable_ms.p99_ms,
         grid_observed_fraction,
@@ -283,12 +284,9 @@ fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()
 }
 
-fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * q).round() as usize]
+/// [`percentile`], NaN when nothing was measured.
+fn pct(v: &mut [f64], q: f64) -> f64 {
+    percentile(v, q).unwrap_or(f64::NAN)
 }
 
 /// Prints the end-of-demo table.

@@ -161,6 +161,10 @@ enum QueryCommand {
     },
 }
 
+fn preset_named(name: &str) -> Result<ScannerPreset> {
+    ScannerPreset::by_name(name).with_context(|| format!("unknown preset {name:?}: seed000, vlp16, os1-64"))
+}
+
 fn pairs(coords: &[f64]) -> Result<Vec<[f64; 2]>> {
     anyhow::ensure!(coords.len().is_multiple_of(2), "coordinates come in (x, y) pairs");
     Ok(coords.chunks(2).map(|c| [c[0], c[1]]).collect())
@@ -247,8 +251,7 @@ fn main() -> Result<()> {
             step_m,
             out,
         } => {
-            let preset = ScannerPreset::by_name(&preset)
-                .with_context(|| format!("unknown preset {preset:?}: seed000, vlp16, os1-64"))?;
+            let preset = preset_named(&preset)?;
             let opts = LoadOptions {
                 service: service.unwrap_or_else(|| format!("rangegp/{}/scans", connection.map_id)),
                 connect: connection.connect,
@@ -277,8 +280,7 @@ fn main() -> Result<()> {
             step_m,
             publisher_id,
         } => {
-            let preset = ScannerPreset::by_name(&preset)
-                .with_context(|| format!("unknown preset {preset:?}: seed000, vlp16, os1-64"))?;
+            let preset = preset_named(&preset)?;
             anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
             let rays = preset.ray_count();
             let mut world = ScanGenerator::new(seed, 100.0, preset, count, step_m);

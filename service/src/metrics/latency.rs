@@ -3,6 +3,7 @@
 //! histogram of every sample for scraping.
 
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use rangegp_client::stats::percentile;
 use rangegp_proto::msg::LatencySummary;
 use std::collections::VecDeque;
 use std::sync::{Mutex, PoisonError};
@@ -50,13 +51,13 @@ impl Latency {
         if samples.is_empty() {
             return LatencySummary::default();
         }
-        samples.sort_by(f64::total_cmp);
+        let mut at = |q: f64| percentile(&mut samples, q).unwrap_or(0.0);
         LatencySummary {
             count,
-            p50_ms: percentile(&samples, 0.50),
-            p90_ms: percentile(&samples, 0.90),
-            p99_ms: percentile(&samples, 0.99),
-            max_ms: samples[samples.len() - 1],
+            p50_ms: at(0.50),
+            p90_ms: at(0.90),
+            p99_ms: at(0.99),
+            max_ms: at(1.0),
         }
     }
 
@@ -64,12 +65,6 @@ impl Latency {
     pub fn histogram(&self) -> &Histogram {
         &self.histogram
     }
-}
-
-/// Nearest-rank percentile `q` of ascending, non-empty `sorted`.
-pub fn percentile(sorted: &[f64], q: f64) -> f64 {
-    let rank = (q * sorted.len() as f64).ceil() as usize;
-    sorted[rank.clamp(1, sorted.len()) - 1]
 }
 
 #[cfg(test)]
@@ -94,13 +89,5 @@ mod tests {
         assert!((s.p50_ms - 52.0).abs() < 2.0, "{s:?}");
         assert_eq!(s.max_ms, 1000.0);
         assert!(s.p90_ms < 100.5, "{s:?}");
-    }
-
-    #[test]
-    fn nearest_rank() {
-        let v = [1.0, 2.0, 3.0, 4.0];
-        assert_eq!(percentile(&v, 0.5), 2.0);
-        assert_eq!(percentile(&v, 0.99), 4.0);
-        assert_eq!(percentile(&v, 0.0), 1.0);
     }
 }

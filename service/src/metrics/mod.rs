@@ -35,12 +35,6 @@ pub struct Metrics {
     pub aggregate_failed: AtomicU64,
     /// World-aggregate tiles evicted for lying beyond its radius.
     pub aggregate_evicted_tiles: AtomicU64,
-    /// Local maps in the published window.
-    pub window_len: AtomicU64,
-    /// Fused cells in the published aggregate.
-    pub aggregate_cells: AtomicU64,
-    /// Fitted tiles in the published aggregate.
-    pub aggregate_tiles: AtomicU64,
     /// Fit of one scan.
     pub fit: Latency,
     /// Scan taken from shared memory to its map published for queries.
@@ -70,9 +64,6 @@ impl Default for Metrics {
             aggregate_skipped: AtomicU64::new(0),
             aggregate_failed: AtomicU64::new(0),
             aggregate_evicted_tiles: AtomicU64::new(0),
-            window_len: AtomicU64::new(0),
-            aggregate_cells: AtomicU64::new(0),
-            aggregate_tiles: AtomicU64::new(0),
             fit: Latency::default(),
             scan_to_queryable: Latency::default(),
             aggregate_insert: Latency::default(),

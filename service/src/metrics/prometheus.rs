@@ -1,12 +1,14 @@
-//! Prometheus text exposition of [`Metrics`] on a loopback HTTP port (`GET /metrics`).
+//! Prometheus text exposition of [`super::Metrics`] on a loopback HTTP port (`GET /metrics`).
 //!
-//! Counters and gauges are read from the daemon's own atomics at scrape time (one source of
-//! truth, no second bookkeeping); latencies are the histograms kept beside the status rings.
+//! Counters are read from the daemon's own atomics and sizes from the current snapshot at scrape
+//! time (the same sources as `status`, no second bookkeeping); latencies are the histograms kept beside the status rings.
 //! `prometheus-client` (the Prometheus project's Rust client) does the encoding; `tiny_http`
 //! serves it from one small thread, independent of the async runtime and of the query workers.
 
-use super::{rss_mb, Latency, Metrics};
+use super::{rss_mb, Latency};
 use crate::ingest::validate::RejectReason;
+use crate::map::aggregate::Aggregate;
+use crate::server::ServerState;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
 use prometheus_client::metrics::counter::ConstCounter;
@@ -53,8 +55,9 @@ impl std::fmt::Debug for Exporter {
 }
 
 impl Exporter {
-    /// Serves `metrics` at `http://<listen>/metrics` (port 0 picks a free port).
-    pub fn start(listen: &str, metrics: Arc<Metrics>) -> Result<Self, ExporterError> {
+    /// Serves the daemon's metrics (counters, and sizes read off the current snapshot) at
+    /// `http://<listen>/metrics` (port 0 picks a free port).
+    pub fn start(listen: &str, state: Arc<ServerState>) -> Result<Self, ExporterError> {
         let bind_err = |reason: String| ExporterError::Bind {
             addr: listen.to_owned(),
             reason,
@@ -66,7 +69,7 @@ impl Exporter {
             .ok_or_else(|| bind_err("not an IP address".into()))?;
         let server = Arc::new(server);
         let mut registry = Registry::with_prefix("rangegp");
-        registry.register_collector(Box::new(DaemonCollector(metrics)));
+        registry.register_collector(Box::new(DaemonCollector(state)));
         let stop = Arc::new(AtomicBool::new(false));
         let thread = {
             let (server, stop) = (Arc::clone(&server), Arc::clone(&stop));
@@ -133,7 +136,7 @@ const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset
 
 /// Encodes the daemon's metrics on each scrape.
 #[derive(Debug)]
-struct DaemonCollector(Arc<Metrics>);
+struct DaemonCollector(Arc<ServerState>);
 
 fn counter(enc: &mut DescriptorEncoder, name: &str, help: &str, value: u64) -> std::fmt::Result {
     let c = ConstCounter::new(value);
@@ -152,7 +155,9 @@ fn histogram(enc: &mut DescriptorEncoder, name: &str, help: &str, latency: &Late
 
 impl Collector for DaemonCollector {
     fn encode(&self, mut enc: DescriptorEncoder) -> std::fmt::Result {
-        let m = &self.0;
+        let m = &self.0.metrics;
+        let snap = self.0.snapshot.load();
+        let (cells, tiles) = snap.aggregate.as_ref().map_or((0, 0), |a| (a.len(), a.tiles()));
         let e = &mut enc;
         counter(
             e,
@@ -224,20 +229,10 @@ impl Collector for DaemonCollector {
             e,
             "window_maps",
             "Local maps in the window",
-            m.window_len.load(Relaxed) as f64,
+            snap.maps.len() as f64,
         )?;
-        gauge(
-            e,
-            "aggregate_cells",
-            "Fused aggregate cells",
-            m.aggregate_cells.load(Relaxed) as f64,
-        )?;
-        gauge(
-            e,
-            "aggregate_tiles",
-            "Fitted aggregate tiles",
-            m.aggregate_tiles.load(Relaxed) as f64,
-        )?;
+        gauge(e, "aggregate_cells", "Fused aggregate cells", cells as f64)?;
+        gauge(e, "aggregate_tiles", "Fitted aggregate tiles", tiles as f64)?;
         gauge(e, "uptime_seconds", "Seconds since start", m.uptime_s())?;
         if let Some(mb) = rss_mb() {
             gauge(

@@ -140,16 +140,16 @@ impl WorldAggregate {
             let (cx, cy) = ((ti as f64 + 0.5) * side, (tj as f64 + 0.5) * side);
             (cx - x).hypot(cy - y) > radius_m
         };
-        let owners: BTreeSet<(i32, i32)> = self.cells.keys().map(|&c| self.tile_of(c)).collect();
-        let gone: BTreeSet<(i32, i32)> = self.tiles.keys().copied().chain(owners).filter(far).collect();
+        // Every cell's own tile is fitted (its grown box holds the cell), so the far tiles name
+        // every cell to drop.
+        let gone: BTreeSet<(i32, i32)> = self.tiles.keys().copied().filter(far).collect();
         if gone.is_empty() {
             return 0;
         }
-        let evicted = gone.iter().filter(|t| self.tiles.contains_key(t)).count();
         self.tiles.retain(|t, _| !gone.contains(t));
         let (n, cells) = (self.params.tile_cells, &mut self.cells);
         cells.retain(|&(i, j), _| !gone.contains(&(i.div_euclid(n), j.div_euclid(n))));
-        evicted
+        gone.len()
     }
 
     /// The fused cells, by index.
