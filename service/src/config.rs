@@ -48,6 +48,31 @@ pub struct Config {
     pub query: QueryConfig,
     /// Prometheus metrics.
     pub metrics: MetricsConfig,
+    /// Durable checkpoints of the aggregate.
+    pub checkpoint: CheckpointConfig,
+}
+
+/// Durable checkpoints of the aggregate (docs/OPERATIONS.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CheckpointConfig {
+    /// Directory of the checkpoint files (one directory per map); unset: no checkpoints, the
+    /// aggregate starts empty at every start.
+    pub dir: Option<PathBuf>,
+    /// A changed aggregate is written at most this often, milliseconds (and once at shutdown).
+    pub interval_ms: u64,
+    /// Generations kept; the older ones are the fallback when the newest is damaged.
+    pub keep: usize,
+}
+
+impl Default for CheckpointConfig {
+    fn default() -> Self {
+        Self {
+            dir: None,
+            interval_ms: 500,
+            keep: 2,
+        }
+    }
 }
 
 /// Prometheus metrics endpoint.
@@ -81,6 +106,9 @@ pub struct IngestConfig {
     pub cleanup_interval_s: u64,
     /// Scans waiting for the fitter; beyond it the oldest waiting scan is skipped (newest wins).
     pub queue_len: usize,
+    /// Scans stamped later than this ahead of the daemon's clock are rejected
+    /// (`future_timestamp`), milliseconds.
+    pub max_future_ms: u64,
 }
 
 /// GP model.
@@ -236,6 +264,7 @@ impl Default for Config {
             zenoh: ZenohConfig::default(),
             query: QueryConfig::default(),
             metrics: MetricsConfig::default(),
+            checkpoint: CheckpointConfig::default(),
         }
     }
 }
@@ -248,6 +277,7 @@ impl Default for IngestConfig {
             poll_interval_ms: 2,
             cleanup_interval_s: 5,
             queue_len: 2,
+            max_future_ms: 1000,
         }
     }
 }
@@ -351,6 +381,9 @@ impl Config {
         }
         if !self.metrics.listen.is_empty() && self.metrics.listen.parse::<std::net::SocketAddr>().is_err() {
             return bad("metrics.listen must be host:port with an IP host (or empty to disable)");
+        }
+        if self.checkpoint.interval_ms == 0 || self.checkpoint.keep < 2 {
+            return bad("checkpoint.interval_ms must be positive and checkpoint.keep at least 2");
         }
         if self.window.capacity == 0 {
             return bad("window.capacity must be positive");

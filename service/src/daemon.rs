@@ -1,6 +1,7 @@
 //! The daemon: ingest thread → newest-wins queue → fitter thread → window → snapshot → queries;
 //! the fitter hands each map to the aggregate thread, which publishes its own copy.
 
+use crate::checkpoint::writer::{self, Writer};
 use crate::config::Config;
 use crate::gp::hyper::OnlineHyperparameters;
 use crate::gp::Kernel;
@@ -22,7 +23,7 @@ use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::PROTOCOL_VERSION;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -61,6 +62,7 @@ pub struct Daemon {
     fitter: Option<JoinHandle<()>>,
     learner: Option<JoinHandle<()>>,
     aggregator: Option<JoinHandle<()>>,
+    checkpointer: Option<(Arc<Mutex<Writer>>, JoinHandle<()>)>,
     exporter: Option<Exporter>,
     session: zenoh::Session,
 }
@@ -98,10 +100,24 @@ impl Daemon {
             .map_err(|e| StartError::Zenoh(e.to_string()))?;
         let metrics = Arc::new(Metrics::default());
         let shutdown = Arc::new(AtomicBool::new(false));
-        let params = config.map_params();
+        let mut params = config.map_params();
+        let world_params = WorldParams::default();
+        let (store, restored) = if config.aggregate.enabled {
+            crate::checkpoint::resume(&config.checkpoint, &config.map_id, &world_params, &metrics)
+        } else {
+            (None, None)
+        };
+        if let (Some(r), true) = (&restored, config.gp.online.enabled) {
+            let c = &r.checkpoint;
+            params.kernel = params.kernel.with(c.kernel_variance, c.length_scale);
+        }
+        let world = restored.map(|r| Arc::new(r.world));
         let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(ServerState {
-            snapshot: ArcSwap::from_pointee(MapSnapshot::default()),
+            snapshot: ArcSwap::from_pointee(MapSnapshot {
+                maps: Vec::new(),
+                aggregate: world.clone(),
+            }),
             metrics: Arc::clone(&metrics),
             keys: config.keys(),
             max_batch: config.query.max_batch,
@@ -150,12 +166,34 @@ impl Daemon {
                 radius_m: config.aggregate.radius_m,
                 min_interval: Duration::from_millis(config.aggregate.min_interval_ms),
             };
+            let start = world
+                .clone()
+                .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
             let thread = std::thread::Builder::new()
                 .name("rangegp-aggregate".into())
-                .spawn(move || aggregate_loop(&rx, &state, WorldParams::default(), pace, &shutdown))?;
+                .spawn(move || aggregate_loop(&rx, &state, start, pace, &shutdown))?;
             (Some(feed), Some(thread))
         } else {
             (None, None)
+        };
+        let checkpointer = match store {
+            Some(store) => {
+                let w = Arc::new(Mutex::new(Writer::new(
+                    store,
+                    &config.map_id,
+                    &world_params,
+                    world,
+                )));
+                let interval = Duration::from_millis(config.checkpoint.interval_ms);
+                let thread = writer::spawn(
+                    Arc::clone(&w),
+                    Arc::clone(&state),
+                    interval,
+                    Arc::clone(&shutdown),
+                )?;
+                Some((w, thread))
+            }
+            None => None,
         };
         let queue = Arc::new(LatestQueue::new(config.ingest.queue_len));
         let feed = learner.as_ref().map(|l| (Arc::clone(&l.samples), l.subset));
@@ -176,6 +214,7 @@ impl Daemon {
                 service_name: config.scan_service_name(),
                 limits: ValidationLimits {
                     max_points: config.ingest.max_points,
+                    max_future_ns: config.ingest.max_future_ms.saturating_mul(1_000_000),
                 },
                 poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
                 cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),
@@ -195,6 +234,9 @@ impl Daemon {
                 if let Some(a) = aggregator {
                     let _ = a.join();
                 }
+                if let Some((_, c)) = checkpointer {
+                    let _ = c.join();
+                }
                 return Err(e.into());
             }
         };
@@ -211,6 +253,7 @@ impl Daemon {
             fitter: Some(fitter),
             learner: learner.map(|l| l.thread),
             aggregator,
+            checkpointer,
             exporter,
             session,
         })
@@ -250,6 +293,13 @@ impl Daemon {
         }
         if let Some(a) = self.aggregator.take() {
             let _ = a.join();
+        }
+        // The aggregate thread has published its last insert: write it before exiting.
+        if let Some((w, thread)) = self.checkpointer.take() {
+            let _ = thread.join();
+            w.lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .write_if_changed(&self.state);
         }
         self.exporter.take();
         if let Err(e) = self.session.close().wait() {
@@ -378,11 +428,10 @@ fn announce(
 fn aggregate_loop(
     feed: &AggregateFeed,
     state: &ServerState,
-    params: WorldParams,
+    mut world: Arc<WorldAggregate>,
     pace: AggregatePace,
     shutdown: &AtomicBool,
 ) {
-    let mut world = Arc::new(WorldAggregate::new(params));
     let m = &state.metrics;
     // One worker of its own: the aggregate's parallel loops must not queue the fitter's tiles
     // behind a whole insert in the shared pool (seen as 100 ms fit spikes).

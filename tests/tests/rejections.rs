@@ -104,9 +104,9 @@ fn malformed_scans_are_counted_by_reason_and_the_map_is_untouched() -> anyhow::R
             },
             good.points.clone(),
         ),
-        // Sequence 1 was accepted first: a replay is stale.
+        // Sequence 1 was accepted first: sending it again is a duplicate.
         (
-            "stale_sequence",
+            "duplicate_sequence",
             ScanHeader { sequence: 1, ..valid },
             good.points.clone(),
         ),

@@ -117,7 +117,11 @@ pub(crate) fn scans(
             let rays = simulate_scan(terrain, &pose, preset, &mut rng);
             let (mut header, points) = to_message(preset, &pose, &rays, 0);
             header.sequence = i as u64;
-            validate(&header, &points, &ValidationLimits { max_points: 1 << 20 })
+            let limits = ValidationLimits {
+                max_points: 1 << 20,
+                max_future_ns: u64::MAX,
+            };
+            validate(&header, &points, &limits, 0)
                 .map_err(|r| anyhow::anyhow!("simulated scan rejected: {}", r.as_str()))
         })
         .collect()

@@ -55,9 +55,11 @@ fn main() -> Result<()> {
             ])
             .context("installing signal handlers")?;
             let daemon = Daemon::start(&config)?;
+            notify_systemd(&[sd_notify::NotifyState::Ready]);
             if let Some(sig) = signals.forever().next() {
                 tracing::info!(signal = sig, "shutting down");
             }
+            notify_systemd(&[sd_notify::NotifyState::Stopping]);
             daemon.shutdown();
         }
         Command::Demo(opts) => {
@@ -67,4 +69,11 @@ fn main() -> Result<()> {
         Command::DefaultConfig => print!("{}", toml::to_string_pretty(&Config::default())?),
     }
     Ok(())
+}
+
+/// Tells systemd (`Type=notify`) where the daemon is; a no-op outside systemd.
+fn notify_systemd(state: &[sd_notify::NotifyState]) {
+    if let Err(e) = sd_notify::notify(false, state) {
+        tracing::warn!(error = %e, "cannot notify systemd");
+    }
 }

@@ -2,7 +2,7 @@
 //! accepted scans to the fitter. iceoryx2 has no async API, so this is a plain thread.
 
 use super::queue::LatestQueue;
-use super::validate::{check_header, validate, SequenceTracker, ValidationLimits};
+use super::validate::{check_header, validate, SequenceTracker, Source, ValidationLimits};
 use super::Arrival;
 use crate::metrics::Metrics;
 use iceoryx2::prelude::*;
@@ -126,6 +126,9 @@ impl Intake {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
             .map_err(|e| IngestError::Node(format!("{e:?}")))?;
+        // A daemon killed with SIGKILL leaves its subscriber port behind; free it before asking
+        // for a new one (the service admits few subscribers).
+        log_cleanup(node.try_cleanup_dead_nodes());
         let service = open_scan_service(&node, &name).map_err(|e| IngestError::Service {
             name: settings.service_name.clone(),
             reason: format!("{e:?}"),
@@ -154,7 +157,12 @@ impl Intake {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
                     let received = Instant::now();
+                    let now_ns = unix_now_ns();
                     let header = *sample.user_header();
+                    let source = Source {
+                        publisher_id: header.publisher_id,
+                        port: sample.header().publisher_id().value(),
+                    };
                     let slice = sample.payload();
                     // The slice length lives in the publisher's memory: read it once, bound it.
                     let slice_len = slice.len();
@@ -165,28 +173,27 @@ impl Intake {
                         sequence = header.sequence
                     )
                     .entered();
-                    if let Err(reason) = check_header(&header, slice_len, &settings.limits) {
+                    if let Err(reason) = check_header(&header, slice_len, &settings.limits, now_ns) {
                         metrics.reject(reason);
                         debug!(reason = reason.as_str(), "scan rejected");
                         continue;
                     }
                     let points: Vec<ScanPoint> = slice[..header.point_count as usize].to_vec();
                     drop(sample);
-                    self.accept(header, &points, received, settings, queue, metrics);
+                    let arrived = Received {
+                        header,
+                        source,
+                        received,
+                        now_ns,
+                    };
+                    self.accept(arrived, &points, settings, queue, metrics);
                     continue;
                 }
                 Ok(None) => {}
                 Err(e) => warn!(error = ?e, "receive failed"),
             }
             if last_cleanup.elapsed() >= settings.cleanup_interval {
-                let state = self.node.try_cleanup_dead_nodes();
-                if state.cleanups > 0 || state.failed_cleanups > 0 {
-                    info!(
-                        cleaned = state.cleanups,
-                        failed = state.failed_cleanups,
-                        "dead iceoryx2 nodes"
-                    );
-                }
+                log_cleanup(self.node.try_cleanup_dead_nodes());
                 last_cleanup = Instant::now();
             }
             std::thread::sleep(settings.poll_interval);
@@ -196,22 +203,30 @@ impl Intake {
 
     fn accept(
         &mut self,
-        header: ScanHeader,
+        arrived: Received,
         points: &[ScanPoint],
-        received: Instant,
         settings: &IngestSettings,
         queue: &LatestQueue<Arrival>,
         metrics: &Metrics,
     ) {
-        let checked = validate(&header, points, &settings.limits).and_then(|scan| {
+        let Received {
+            header,
+            source,
+            received,
+            now_ns,
+        } = arrived;
+        let checked = validate(&header, points, &settings.limits, now_ns).and_then(|scan| {
             self.sequences
-                .check(scan.publisher_id, scan.sequence)
+                .check(source, scan.sequence)
                 .map(|gaps| (scan, gaps))
         });
         match checked {
             Ok((scan, gaps)) => {
-                metrics.sequence_gaps.fetch_add(gaps, Ordering::Relaxed);
-                self.sequences.accept(scan.publisher_id, scan.sequence);
+                self.sequences.accept(source, scan.sequence);
+                metrics.count_source(scan.publisher_id, gaps);
+                if gaps > 0 {
+                    debug!(publisher = scan.publisher_id, missing = gaps, "sequence gap");
+                }
                 if let Some(old) = queue.push(Arrival { scan, received }) {
                     metrics.skipped.fetch_add(1, Ordering::Relaxed);
                     warn!(
@@ -227,5 +242,30 @@ impl Intake {
                 debug!(reason = reason.as_str(), "scan rejected");
             }
         }
+    }
+}
+
+/// A sample's header copied out of shared memory, with where and when it came from.
+struct Received {
+    header: ScanHeader,
+    source: Source,
+    received: Instant,
+    now_ns: u64,
+}
+
+/// This machine's clock, nanoseconds since the Unix epoch (0 if it is set before 1970).
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}
+
+fn log_cleanup(state: iceoryx2::node::CleanupState) {
+    if state.cleanups > 0 || state.failed_cleanups > 0 {
+        info!(
+            cleaned = state.cleanups,
+            failed = state.failed_cleanups,
+            "dead iceoryx2 nodes"
+        );
     }
 }

@@ -30,8 +30,12 @@ pub enum RejectReason {
     NonUnitQuaternion,
     /// Max range or noise coefficient out of range.
     InvalidSensorModel,
-    /// Sequence number not after the publisher's last accepted one.
+    /// Sequence number below the publisher's last accepted one (out of order or replayed late).
     StaleSequence,
+    /// Sequence number equal to the publisher's last accepted one (sent twice).
+    DuplicateSequence,
+    /// Acquisition time later than now plus `ingest.max_future_ms` (a driver clock gone wrong).
+    FutureTimestamp,
     /// Every ray was a no-return: nothing to map.
     NoReturns,
     /// The GP could not be fitted (Cholesky failed after jitter).
@@ -40,7 +44,7 @@ pub enum RejectReason {
 
 impl RejectReason {
     /// Every reason, in status order.
-    pub const ALL: [RejectReason; 13] = [
+    pub const ALL: [RejectReason; 15] = [
         RejectReason::UnsupportedVersion,
         RejectReason::EmptyScan,
         RejectReason::TooManyPoints,
@@ -52,6 +56,8 @@ impl RejectReason {
         RejectReason::NonUnitQuaternion,
         RejectReason::InvalidSensorModel,
         RejectReason::StaleSequence,
+        RejectReason::DuplicateSequence,
+        RejectReason::FutureTimestamp,
         RejectReason::NoReturns,
         RejectReason::FitFailed,
     ];
@@ -70,6 +76,8 @@ impl RejectReason {
             RejectReason::NonUnitQuaternion => "non_unit_quaternion",
             RejectReason::InvalidSensorModel => "invalid_sensor_model",
             RejectReason::StaleSequence => "stale_sequence",
+            RejectReason::DuplicateSequence => "duplicate_sequence",
+            RejectReason::FutureTimestamp => "future_timestamp",
             RejectReason::NoReturns => "no_returns",
             RejectReason::FitFailed => "fit_failed",
         }
@@ -81,6 +89,8 @@ impl RejectReason {
 pub struct ValidationLimits {
     /// Most points accepted in one scan.
     pub max_points: usize,
+    /// How far a scan's stamp may lie ahead of this machine's clock, nanoseconds.
+    pub max_future_ns: u64,
 }
 
 /// Largest sensor max range accepted, metres.
@@ -88,8 +98,14 @@ const MAX_SENSOR_RANGE_M: f64 = 1000.0;
 /// Largest range-noise coefficient accepted (σ/r).
 const MAX_NOISE_PER_M: f64 = 0.1;
 
-/// Checks the header alone (before any point is copied).
-pub fn check_header(h: &ScanHeader, slice_len: usize, limits: &ValidationLimits) -> Result<(), RejectReason> {
+/// Checks the header alone (before any point is copied); `now_ns` is this machine's clock,
+/// nanoseconds since the Unix epoch.
+pub fn check_header(
+    h: &ScanHeader,
+    slice_len: usize,
+    limits: &ValidationLimits,
+    now_ns: u64,
+) -> Result<(), RejectReason> {
     if h.protocol_version != PROTOCOL_VERSION {
         return Err(RejectReason::UnsupportedVersion);
     }
@@ -116,6 +132,9 @@ pub fn check_header(h: &ScanHeader, slice_len: usize, limits: &ValidationLimits)
     if !range_ok || !noise_ok {
         return Err(RejectReason::InvalidSensorModel);
     }
+    if h.stamp_ns > now_ns.saturating_add(limits.max_future_ns) {
+        return Err(RejectReason::FutureTimestamp);
+    }
     Ok(())
 }
 
@@ -125,8 +144,9 @@ pub fn validate(
     h: &ScanHeader,
     points: &[ScanPoint],
     limits: &ValidationLimits,
+    now_ns: u64,
 ) -> Result<ScanInput, RejectReason> {
-    check_header(h, points.len(), limits)?;
+    check_header(h, points.len(), limits, now_ns)?;
     let points = &points[..h.point_count as usize];
     let known_flags = FLAG_NO_RETURN | FLAG_RING_COLUMN_VALID;
     let mut rays = Vec::with_capacity(points.len());
@@ -169,32 +189,43 @@ pub fn validate(
     })
 }
 
-/// Per-publisher sequence bookkeeping: refuses replays, counts gaps. Bounded in size.
-#[derive(Debug, Default)]
-pub struct SequenceTracker {
-    last: HashMap<u64, u64>,
+/// Who sent a scan: the header's publisher id and the iceoryx2 port it came through. A driver
+/// that restarts keeps its id but gets a new port, so its sequence numbers may start again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Source {
+    /// `ScanHeader::publisher_id`.
+    pub publisher_id: u64,
+    /// iceoryx2's unique publisher-port id.
+    pub port: u128,
 }
 
-/// Publishers remembered at most; beyond it the table is cleared (a restart of bookkeeping).
-const MAX_TRACKED_PUBLISHERS: usize = 4096;
+/// Per-source sequence bookkeeping: refuses replays, counts gaps. Bounded in size.
+#[derive(Debug, Default)]
+pub struct SequenceTracker {
+    last: HashMap<Source, u64>,
+}
+
+/// Sources remembered at most; beyond it the table is cleared (a restart of bookkeeping).
+const MAX_TRACKED_SOURCES: usize = 4096;
 
 impl SequenceTracker {
-    /// Checks `sequence` against `publisher`'s last accepted one without recording it; returns
+    /// Checks `sequence` against the source's last accepted one without recording it; returns
     /// the number of sequence numbers skipped since then.
-    pub fn check(&self, publisher: u64, sequence: u64) -> Result<u64, RejectReason> {
-        match self.last.get(&publisher) {
-            Some(&last) if sequence <= last => Err(RejectReason::StaleSequence),
+    pub fn check(&self, source: Source, sequence: u64) -> Result<u64, RejectReason> {
+        match self.last.get(&source) {
+            Some(&last) if sequence == last => Err(RejectReason::DuplicateSequence),
+            Some(&last) if sequence < last => Err(RejectReason::StaleSequence),
             Some(&last) => Ok(sequence - last - 1),
             None => Ok(0),
         }
     }
 
     /// Records an accepted scan.
-    pub fn accept(&mut self, publisher: u64, sequence: u64) {
-        if self.last.len() >= MAX_TRACKED_PUBLISHERS && !self.last.contains_key(&publisher) {
+    pub fn accept(&mut self, source: Source, sequence: u64) {
+        if self.last.len() >= MAX_TRACKED_SOURCES && !self.last.contains_key(&source) {
             self.last.clear();
         }
-        self.last.insert(publisher, sequence);
+        self.last.insert(source, sequence);
     }
 }
 
@@ -226,8 +257,14 @@ pub(crate) mod tests {
     }
 
     fn limits() -> ValidationLimits {
-        ValidationLimits { max_points: 100 }
+        ValidationLimits {
+            max_points: 100,
+            max_future_ns: 1_000_000_000,
+        }
     }
+
+    /// The clock the tests validate against: 100 s after the epoch.
+    const NOW: u64 = 100_000_000_000;
 
     #[test]
     fn a_good_scan_passes_and_max_range_returns_are_dropped() {
@@ -235,7 +272,7 @@ pub(crate) mod tests {
         pts[3].range_m = 10.0;
         pts[4].flags = FLAG_NO_RETURN;
         pts[4].range_m = f32::NAN;
-        let scan = validate(&good_header(10), &pts, &limits()).expect("valid");
+        let scan = validate(&good_header(10), &pts, &limits(), NOW).expect("valid");
         assert_eq!(scan.rays.len(), 8);
     }
 
@@ -243,7 +280,7 @@ pub(crate) mod tests {
     fn each_defect_has_its_own_reason() {
         let pts = good_points(10);
         let check = |h: ScanHeader, p: &[ScanPoint], want: RejectReason| {
-            assert_eq!(validate(&h, p, &limits()).err(), Some(want));
+            assert_eq!(validate(&h, p, &limits(), NOW).err(), Some(want));
         };
         check(
             ScanHeader {
@@ -296,6 +333,14 @@ pub(crate) mod tests {
             &pts,
             RejectReason::InvalidSensorModel,
         );
+        check(
+            ScanHeader {
+                stamp_ns: NOW + 1_000_000_001,
+                ..good_header(10)
+            },
+            &pts,
+            RejectReason::FutureTimestamp,
+        );
         let mut bad = pts.clone();
         bad[2].range_m = f32::NAN;
         check(good_header(10), &bad, RejectReason::InvalidRange);
@@ -320,12 +365,23 @@ pub(crate) mod tests {
     #[test]
     fn sequences_refuse_replays_and_count_gaps() {
         let mut t = SequenceTracker::default();
-        assert_eq!(t.check(1, 5), Ok(0));
-        t.accept(1, 5);
-        assert_eq!(t.check(1, 5), Err(RejectReason::StaleSequence));
-        assert_eq!(t.check(1, 4), Err(RejectReason::StaleSequence));
-        assert_eq!(t.check(1, 8), Ok(2));
-        assert_eq!(t.check(2, 0), Ok(0));
+        let a = Source {
+            publisher_id: 1,
+            port: 10,
+        };
+        assert_eq!(t.check(a, 5), Ok(0));
+        t.accept(a, 5);
+        assert_eq!(t.check(a, 5), Err(RejectReason::DuplicateSequence));
+        assert_eq!(t.check(a, 4), Err(RejectReason::StaleSequence));
+        assert_eq!(t.check(a, 8), Ok(2));
+        let other = Source {
+            publisher_id: 2,
+            port: 11,
+        };
+        assert_eq!(t.check(other, 0), Ok(0));
+        // The same driver restarted: same id, new port, sequences from 1 again.
+        let restarted = Source { port: 12, ..a };
+        assert_eq!(t.check(restarted, 1), Ok(0));
     }
 
     #[test]
@@ -336,6 +392,76 @@ pub(crate) mod tests {
         assert_eq!(names.len(), RejectReason::ALL.len());
         for (i, r) in RejectReason::ALL.iter().enumerate() {
             assert_eq!(*r as usize, i, "ALL must follow declaration order");
+        }
+    }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        fn header() -> impl Strategy<Value = ScanHeader> {
+            let float = prop_oneof![
+                Just(0.0),
+                Just(1.0),
+                Just(f64::NAN),
+                Just(f64::INFINITY),
+                -1e3..1e3f64,
+                proptest::num::f64::ANY
+            ];
+            (
+                (0u32..4, 0u32..200, any::<u64>(), any::<u64>()),
+                proptest::collection::vec(float, 9),
+            )
+                .prop_map(|((version, count, sequence, stamp), f)| ScanHeader {
+                    protocol_version: version,
+                    point_count: count,
+                    publisher_id: 1,
+                    sequence,
+                    stamp_ns: stamp,
+                    px_m: f[0],
+                    py_m: f[1],
+                    pz_m: f[2],
+                    qx: f[3] * 1e-3,
+                    qy: f[4] * 1e-3,
+                    qz: f[5] * 1e-3,
+                    qw: if f[6].is_finite() { 1.0 } else { f[6] },
+                    max_range_m: f[7],
+                    range_noise_per_m: f[8] * 1e-3,
+                })
+        }
+
+        fn point() -> impl Strategy<Value = ScanPoint> {
+            let float = prop_oneof![Just(f32::NAN), -4.0..40.0f32, proptest::num::f32::ANY];
+            (float.clone(), float.clone(), float, 0u16..4, 0u16..2).prop_map(|(r, i, a, flags, reserved)| {
+                ScanPoint {
+                    range_m: r,
+                    inclination_rad: i,
+                    azimuth_rad: a,
+                    flags,
+                    reserved,
+                    ..ScanPoint::default()
+                }
+            })
+        }
+
+        proptest! {
+            #[test]
+            fn any_header_and_points_are_accepted_only_when_sound(
+                h in header(),
+                points in proptest::collection::vec(point(), 0..200),
+            ) {
+                if let Ok(scan) = validate(&h, &points, &limits(), NOW) {
+                    prop_assert!(h.point_count as usize <= points.len().min(100));
+                    prop_assert!(h.stamp_ns <= NOW + 1_000_000_000);
+                    prop_assert!(scan.max_range_m.is_finite() && scan.max_range_m > 0.0);
+                    prop_assert!(scan.pose.translation.vector.iter().all(|v| v.is_finite()));
+                    prop_assert!(!scan.rays.is_empty());
+                    for r in &scan.rays {
+                        prop_assert!(r.range.is_finite() && r.range > 0.0 && r.range < scan.max_range_m);
+                        prop_assert!(r.inclination.is_finite() && r.azimuth.is_finite());
+                    }
+                }
+            }
         }
     }
 }

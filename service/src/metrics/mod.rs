@@ -7,7 +7,9 @@ use crate::ingest::validate::RejectReason;
 pub use latency::Latency;
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{QueryLatencies, RejectionCount};
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
 
 /// Daemon-wide counters.
@@ -23,6 +25,8 @@ pub struct Metrics {
     pub skipped: AtomicU64,
     /// Missing sequence numbers, all publishers.
     pub sequence_gaps: AtomicU64,
+    /// Valid scans and missing sequence numbers per publisher id (bounded, see [`MAX_PUBLISHERS`]).
+    publishers: Mutex<BTreeMap<u64, PublisherCounts>>,
     /// Online hyperparameter updates applied.
     pub hyper_updates: AtomicU64,
     /// Local experts that needed Cholesky jitter.
@@ -35,6 +39,14 @@ pub struct Metrics {
     pub aggregate_failed: AtomicU64,
     /// World-aggregate tiles evicted for lying beyond its radius.
     pub aggregate_evicted_tiles: AtomicU64,
+    /// Checkpoints written.
+    pub checkpoints_written: AtomicU64,
+    /// Checkpoint writes that failed (disk full, I/O error); the daemon keeps running.
+    pub checkpoint_failures: AtomicU64,
+    /// Checkpoint files passed over at start (damaged or foreign).
+    pub checkpoints_rejected: AtomicU64,
+    /// One checkpoint write (encode, write, fsync, rename).
+    pub checkpoint_write: Latency,
     /// Fit of one scan.
     pub fit: Latency,
     /// Scan taken from shared memory to its map published for queries.
@@ -58,12 +70,17 @@ impl Default for Metrics {
             rejected: std::array::from_fn(|_| AtomicU64::new(0)),
             skipped: AtomicU64::new(0),
             sequence_gaps: AtomicU64::new(0),
+            publishers: Mutex::new(BTreeMap::new()),
             hyper_updates: AtomicU64::new(0),
             jittered_tiles: AtomicU64::new(0),
             aggregate_inserts: AtomicU64::new(0),
             aggregate_skipped: AtomicU64::new(0),
             aggregate_failed: AtomicU64::new(0),
             aggregate_evicted_tiles: AtomicU64::new(0),
+            checkpoints_written: AtomicU64::new(0),
+            checkpoint_failures: AtomicU64::new(0),
+            checkpoints_rejected: AtomicU64::new(0),
+            checkpoint_write: Latency::default(),
             fit: Latency::default(),
             scan_to_queryable: Latency::default(),
             aggregate_insert: Latency::default(),
@@ -74,7 +91,39 @@ impl Default for Metrics {
     }
 }
 
+/// Publishers counted separately at most; scans of others are counted under id `u64::MAX`.
+pub const MAX_PUBLISHERS: usize = 64;
+
+/// What one publisher sent that passed validation.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PublisherCounts {
+    /// Valid scans.
+    pub scans: u64,
+    /// Sequence numbers skipped between them.
+    pub gaps: u64,
+}
+
 impl Metrics {
+    /// Counts one valid scan of `publisher` and the sequence numbers it skipped.
+    pub fn count_source(&self, publisher: u64, gaps: u64) {
+        self.sequence_gaps.fetch_add(gaps, Relaxed);
+        let mut table = self.publishers.lock().unwrap_or_else(PoisonError::into_inner);
+        let key = if table.len() < MAX_PUBLISHERS || table.contains_key(&publisher) {
+            publisher
+        } else {
+            u64::MAX
+        };
+        let entry = table.entry(key).or_default();
+        entry.scans += 1;
+        entry.gaps += gaps;
+    }
+
+    /// Per-publisher counts, by publisher id.
+    pub fn publishers(&self) -> Vec<(u64, PublisherCounts)> {
+        let table = self.publishers.lock().unwrap_or_else(PoisonError::into_inner);
+        table.iter().map(|(&k, &v)| (k, v)).collect()
+    }
+
     /// Counts one rejection.
     pub fn reject(&self, reason: RejectReason) {
         self.rejected[reason as usize].fetch_add(1, Relaxed);

@@ -5,7 +5,7 @@
 //! `prometheus-client` (the Prometheus project's Rust client) does the encoding; `tiny_http`
 //! serves it from one small thread, independent of the async runtime and of the query workers.
 
-use super::{rss_mb, Latency};
+use super::{rss_mb, Latency, PublisherCounts};
 use crate::ingest::validate::RejectReason;
 use crate::map::aggregate::Aggregate;
 use crate::server::ServerState;
@@ -194,6 +194,26 @@ impl Collector for DaemonCollector {
                 ConstCounter::new(m.rejected(r)).encode(family.encode_family(&[("reason", r.as_str())])?)?;
             }
         }
+        let publishers = m.publishers();
+        for (name, help, value) in [
+            (
+                "publisher_scans",
+                "Valid scans by publisher id",
+                (|c: &PublisherCounts| c.scans) as fn(&PublisherCounts) -> u64,
+            ),
+            (
+                "publisher_sequence_gaps",
+                "Missing sequence numbers by publisher id",
+                |c: &PublisherCounts| c.gaps,
+            ),
+        ] {
+            let mut family = e.encode_descriptor(name, help, None, MetricType::Counter)?;
+            for (id, counts) in &publishers {
+                let id = id.to_string();
+                ConstCounter::new(value(counts))
+                    .encode(family.encode_family(&[("publisher", id.as_str())])?)?;
+            }
+        }
         counter(e, "queries_ok", "Queries answered", m.queries_ok.load(Relaxed))?;
         counter(
             e,
@@ -225,6 +245,24 @@ impl Collector for DaemonCollector {
             "Aggregate tiles evicted beyond the radius",
             m.aggregate_evicted_tiles.load(Relaxed),
         )?;
+        counter(
+            e,
+            "checkpoints_written",
+            "Aggregate checkpoints written",
+            m.checkpoints_written.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "checkpoint_failures",
+            "Checkpoint writes that failed",
+            m.checkpoint_failures.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "checkpoints_rejected",
+            "Checkpoint files rejected at start",
+            m.checkpoints_rejected.load(Relaxed),
+        )?;
         gauge(
             e,
             "window_maps",
@@ -254,6 +292,12 @@ impl Collector for DaemonCollector {
             "aggregate_insert_seconds",
             "One aggregate insert",
             &m.aggregate_insert,
+        )?;
+        histogram(
+            e,
+            "checkpoint_write_seconds",
+            "One checkpoint write",
+            &m.checkpoint_write,
         )?;
         let mut family = e.encode_descriptor(
             "query_seconds",

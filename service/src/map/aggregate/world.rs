@@ -14,7 +14,7 @@ use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{HeightEstimate, LocalRangeMap, ScanInput};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::sync::Arc;
 
 /// Settings of the world aggregate.
@@ -68,13 +68,32 @@ pub struct Cell {
     pub scans: u32,
 }
 
+/// One scan folded into the aggregate: who sent it and when it was taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ScanRef {
+    /// Publisher id.
+    pub publisher_id: u64,
+    /// Its sequence number.
+    pub sequence: u64,
+    /// Acquisition time, nanoseconds since the Unix epoch.
+    pub stamp_ns: u64,
+}
+
+/// Scans the aggregate remembers having folded in, newest last (provenance for operators and for
+/// replaying a checkpoint; older entries are forgotten, the count is kept).
+pub const HISTORY_LEN: usize = 4096;
+
 /// What a checkpoint of the aggregate holds (tiles are refitted from the cells on restore).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct WorldState {
     /// Settings.
     pub params: WorldParams,
-    /// Cells by (column, row) index.
+    /// Cells by (column, row) index, sorted.
     pub cells: Vec<((i32, i32), Cell)>,
+    /// Scans folded in since the aggregate was created.
+    pub inserts: u64,
+    /// The newest of them (at most [`HISTORY_LEN`]), oldest first.
+    pub history: Vec<ScanRef>,
 }
 
 /// The world-frame tiled elevation aggregate.
@@ -85,6 +104,8 @@ pub struct WorldAggregate {
     // Shared so that a published copy costs the cells and one pointer per tile.
     tiles: HashMap<(i32, i32), Arc<ElevationGp>>,
     refits: u64,
+    inserts: u64,
+    history: VecDeque<ScanRef>,
 }
 
 impl WorldAggregate {
@@ -99,6 +120,8 @@ impl WorldAggregate {
             cells: HashMap::new(),
             tiles: HashMap::new(),
             refits: 0,
+            inserts: 0,
+            history: VecDeque::new(),
         }
     }
 
@@ -106,6 +129,8 @@ impl WorldAggregate {
     pub fn from_state(state: WorldState) -> Result<Self, AggregateError> {
         let mut agg = Self::new(state.params);
         agg.cells = state.cells.into_iter().collect();
+        agg.inserts = state.inserts;
+        agg.history = state.history.into_iter().collect();
         let all: BTreeSet<(i32, i32)> = agg.cells.keys().flat_map(|&c| agg.tiles_covering(c)).collect();
         agg.refit(all)?;
         Ok(agg)
@@ -118,7 +143,19 @@ impl WorldAggregate {
         WorldState {
             params: self.params,
             cells,
+            inserts: self.inserts,
+            history: self.history.iter().copied().collect(),
         }
+    }
+
+    /// Scans folded in since creation (restored with a checkpoint).
+    pub fn inserts(&self) -> u64 {
+        self.inserts
+    }
+
+    /// The newest scan folded in.
+    pub fn newest_scan(&self) -> Option<ScanRef> {
+        self.history.back().copied()
     }
 
     /// Fitted tiles.
@@ -254,7 +291,7 @@ impl Aggregate for WorldAggregate {
         "world tiled elevation experts"
     }
 
-    fn insert(&mut self, _scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
+    fn insert(&mut self, scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
         let s = local.sensor_position();
         let reach = local.max_range().min(self.params.max_reach_m);
         let (lo, hi) = (
@@ -293,7 +330,17 @@ impl Aggregate for WorldAggregate {
             cell.scans += 1;
             dirty.extend(self.tiles_covering(c));
         }
-        self.refit(dirty)
+        self.refit(dirty)?;
+        self.inserts += 1;
+        if self.history.len() == HISTORY_LEN {
+            self.history.pop_front();
+        }
+        self.history.push_back(ScanRef {
+            publisher_id: scan.publisher_id,
+            sequence: scan.sequence,
+            stamp_ns: scan.stamp_ns,
+        });
+        Ok(())
     }
 
     fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {

@@ -1,0 +1,291 @@
+//! Durable checkpoints of the world aggregate (docs/OPERATIONS.md "Checkpoints").
+//!
+//! - [`format`]: the file layout — magic, format version, identity hash, length, bincode
+//!   payload, xxh3 checksum — and its one encode / decode pair.
+//! - [`store`]: generations on disk, written atomically (temp file, fsync, rename, fsync of the
+//!   directory), the newest valid one restored.
+//! - [`writer`]: the thread that writes the published aggregate when it changed.
+//!
+//! A checkpoint holds what the daemon needs to resume its map: the aggregate's cells (tiles are
+//! refitted from them), the scans it folded in, and the online kernel hyperparameters. The
+//! window of local maps is not kept: it is rebuilt by the next scans within a second.
+
+pub mod format;
+pub mod store;
+pub mod writer;
+
+use crate::map::aggregate::world::{WorldAggregate, WorldParams, WorldState, HISTORY_LEN};
+use crate::map::aggregate::AggregateError;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+pub use format::{decode, encode, FormatError};
+pub use store::{Restored, Store, StoreError};
+
+/// What one checkpoint holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// When it was taken, nanoseconds since the Unix epoch.
+    pub created_unix_ns: u64,
+    /// Kernel variance the fitter used, m² (restored when online learning is on).
+    pub kernel_variance: f64,
+    /// Kernel length scale the fitter used (restored when online learning is on).
+    pub length_scale: f64,
+    /// The aggregate.
+    pub world: WorldState,
+}
+
+/// Why a decoded checkpoint cannot be restored.
+#[derive(Debug, Error, PartialEq)]
+pub enum RestoreError {
+    /// The file itself is damaged or from elsewhere.
+    #[error(transparent)]
+    Format(#[from] FormatError),
+    /// The aggregate settings differ from this daemon's.
+    #[error("aggregate settings differ from the configured ones")]
+    ParamsDiffer,
+    /// A value is out of its domain (a cell with a non-finite height, say).
+    #[error("invalid content: {0}")]
+    Invalid(&'static str),
+    /// The aggregate's tiles could not be refitted from its cells.
+    #[error("tiles cannot be refitted: {0}")]
+    Refit(#[from] AggregateError),
+}
+
+/// The identity a checkpoint must match to be restored: the map id and the aggregate settings
+/// (a checkpoint of another map, or of cells of another size, is foreign).
+pub fn identity(map_id: &str, params: &WorldParams) -> u64 {
+    let mut text = String::from(map_id);
+    for v in [
+        params.cell_m,
+        params.kernel_variance,
+        params.length_scale,
+        params.nugget_m2,
+        params.max_cell_sd_m,
+        params.max_gap_m,
+        params.max_reach_m,
+    ] {
+        text.push_str(&format!("|{:016x}", v.to_bits()));
+    }
+    text.push_str(&format!("|{}|{}", params.tile_cells, params.margin_cells));
+    xxhash_rust::xxh3::xxh3_64(text.as_bytes())
+}
+
+impl Checkpoint {
+    /// Checks every value and rebuilds the aggregate (refitting its tiles).
+    pub fn restore(&self, params: &WorldParams) -> Result<WorldAggregate, RestoreError> {
+        let w = &self.world;
+        if w.params != *params {
+            return Err(RestoreError::ParamsDiffer);
+        }
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if !positive(self.kernel_variance) || !positive(self.length_scale) {
+            return Err(RestoreError::Invalid("kernel hyperparameters must be positive"));
+        }
+        let cells_ok = w
+            .cells
+            .iter()
+            .all(|(_, c)| c.z.is_finite() && positive(c.var) && c.scans > 0);
+        if !cells_ok {
+            return Err(RestoreError::Invalid(
+                "a cell has a non-finite height or variance",
+            ));
+        }
+        if w.cells.windows(2).any(|p| p[0].0 >= p[1].0) {
+            return Err(RestoreError::Invalid("cells are not sorted and unique"));
+        }
+        if w.history.len() > HISTORY_LEN || w.history.len() as u64 > w.inserts {
+            return Err(RestoreError::Invalid("scan history longer than its bound"));
+        }
+        Ok(WorldAggregate::from_state(w.clone())?)
+    }
+}
+
+/// Opens the checkpoint directory of `config` and restores the newest valid generation, logging
+/// every file passed over and why. A directory that cannot be opened is logged and counted as a
+/// failure: the daemon then runs without checkpoints rather than not at all.
+pub fn resume(
+    config: &crate::config::CheckpointConfig,
+    map_id: &str,
+    params: &WorldParams,
+    metrics: &crate::metrics::Metrics,
+) -> (Option<Store>, Option<Restored>) {
+    use std::sync::atomic::Ordering::Relaxed;
+    let Some(dir) = &config.dir else {
+        return (None, None);
+    };
+    let store = match Store::open(dir, config.keep) {
+        Ok(store) => store,
+        Err(e) => {
+            metrics.checkpoint_failures.fetch_add(1, Relaxed);
+            tracing::error!(error = %e, "checkpoints disabled: the aggregate will not survive a restart");
+            return (None, None);
+        }
+    };
+    let restored = match store.restore(identity(map_id, params), params) {
+        Ok((restored, rejected)) => {
+            for (file, reason) in &rejected {
+                metrics.checkpoints_rejected.fetch_add(1, Relaxed);
+                tracing::warn!(file = %file.display(), %reason, "checkpoint rejected; trying the previous generation");
+            }
+            restored
+        }
+        Err(e) => {
+            metrics.checkpoint_failures.fetch_add(1, Relaxed);
+            tracing::error!(error = %e, "cannot list checkpoints; starting with an empty aggregate");
+            None
+        }
+    };
+    match &restored {
+        Some(r) => tracing::info!(
+            generation = r.generation,
+            cells = r.world.cells().len(),
+            tiles = r.world.tiles(),
+            inserts = r.world.inserts(),
+            newest_sequence = r.world.newest_scan().map(|s| s.sequence),
+            "aggregate restored from checkpoint"
+        ),
+        None => {
+            tracing::info!(dir = %store.dir().display(), "no usable checkpoint; starting with an empty aggregate")
+        }
+    }
+    (Some(store), restored)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::map::aggregate::world::{Cell, ScanRef};
+    use crate::map::aggregate::Aggregate;
+    use proptest::prelude::*;
+
+    /// A small checkpoint: a 2 m × 2 m patch of sloped ground.
+    pub(crate) fn sample() -> Checkpoint {
+        let params = WorldParams::default();
+        let cells = (0..8)
+            .flat_map(|i| (0..8).map(move |j| (i, j)))
+            .map(|(i, j)| {
+                let z = 0.02 * i as f64 - 0.01 * j as f64;
+                (
+                    (i, j),
+                    Cell {
+                        z,
+                        var: 1e-4,
+                        scans: 1,
+                    },
+                )
+            })
+            .collect();
+        let history = vec![ScanRef {
+            publisher_id: 3,
+            sequence: 9,
+            stamp_ns: 1,
+        }];
+        Checkpoint {
+            created_unix_ns: 42,
+            kernel_variance: 5e-4,
+            length_scale: 0.97,
+            world: WorldState {
+                params,
+                cells,
+                inserts: 1,
+                history,
+            },
+        }
+    }
+
+    fn id() -> u64 {
+        identity("m", &WorldParams::default())
+    }
+
+    #[test]
+    fn a_checkpoint_round_trips_and_restores() {
+        let c = sample();
+        let bytes = encode(&c, id()).expect("encode");
+        let back = decode(&bytes, id()).expect("decode");
+        assert_eq!(back, c);
+        let world = back.restore(&WorldParams::default()).expect("restore");
+        assert_eq!(world.inserts(), 1);
+        assert!(world.elevation(1.0, 1.0).is_some());
+    }
+
+    #[test]
+    fn each_kind_of_damage_has_its_reason() {
+        let bytes = encode(&sample(), id()).expect("encode");
+        let with = |f: &dyn Fn(&mut Vec<u8>)| {
+            let mut b = bytes.clone();
+            f(&mut b);
+            decode(&b, id()).err()
+        };
+        assert_eq!(with(&|b| b.truncate(20)), Some(FormatError::TooShort(20)));
+        assert_eq!(with(&|b| b[0] ^= 1), Some(FormatError::BadMagic));
+        assert_eq!(with(&|b| b[8] = 9), Some(FormatError::Version(9)));
+        assert!(matches!(with(&|b| b[12] ^= 1), Some(FormatError::Foreign { .. })));
+        assert!(matches!(with(&|b| b.push(0)), Some(FormatError::Length { .. })));
+        let mid = bytes.len() / 2;
+        assert_eq!(with(&|b| b[mid] ^= 0x10), Some(FormatError::Checksum));
+        assert!(matches!(
+            decode(&bytes, identity("other map", &WorldParams::default())),
+            Err(FormatError::Foreign { .. })
+        ));
+    }
+
+    #[test]
+    fn content_out_of_its_domain_is_refused() {
+        let params = WorldParams::default();
+        let mut c = sample();
+        c.world.cells[3].1.z = f64::NAN;
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let mut c = sample();
+        c.world.cells.swap(0, 1);
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let mut c = sample();
+        c.length_scale = -1.0;
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let other = WorldParams {
+            cell_m: 0.5,
+            ..params
+        };
+        assert_eq!(sample().restore(&other).err(), Some(RestoreError::ParamsDiffer));
+    }
+
+    proptest! {
+        #[test]
+        fn arbitrary_bytes_never_decode_or_panic(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+            prop_assert!(decode(&bytes, id()).is_err());
+        }
+
+        #[test]
+        fn any_damage_to_a_valid_file_is_caught(
+            at in any::<prop::sample::Index>(),
+            xor in 1u8..=255,
+            cut in any::<prop::sample::Index>(),
+            truncate in any::<bool>(),
+        ) {
+            let bytes = encode(&sample(), id()).expect("encode");
+            let mut damaged = bytes.clone();
+            if truncate {
+                damaged.truncate(cut.index(bytes.len()));
+            } else {
+                damaged[at.index(bytes.len())] ^= xor;
+            }
+            prop_assert!(decode(&damaged, id()).is_err());
+        }
+
+        #[test]
+        fn decoded_payloads_never_panic_restore(
+            z in proptest::num::f64::ANY,
+            var in proptest::num::f64::ANY,
+            scans in any::<u32>(),
+        ) {
+            let mut c = sample();
+            c.world.cells[5].1 = Cell { z, var, scans };
+            let back = decode(&encode(&c, id()).expect("encode"), id()).expect("decode");
+            let ok = z.is_finite() && var.is_finite() && var > 0.0 && scans > 0;
+            let restored = back.restore(&WorldParams::default());
+            if !ok {
+                prop_assert!(restored.is_err());
+            }
+        }
+    }
+}

@@ -1,0 +1,107 @@
+//! The checkpoint thread: writes the published aggregate whenever it changed, at most once per
+//! interval, and once more at shutdown. Disk errors are counted and logged; ingest, fitting and
+//! queries never wait for the disk.
+
+use super::{encode, identity, Checkpoint, Store};
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::priority::{lower_current_thread, Background};
+use crate::server::ServerState;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tracing::{debug, info_span, warn};
+
+/// Writes the aggregate of a [`ServerState`] when it changed since the last write.
+#[derive(Debug)]
+pub struct Writer {
+    store: Store,
+    identity: u64,
+    last: Option<Arc<WorldAggregate>>,
+}
+
+impl Writer {
+    /// A writer for the map `map_id` with aggregate settings `params`; `restored` is the
+    /// aggregate already on disk (not written again until it changes).
+    pub fn new(
+        store: Store,
+        map_id: &str,
+        params: &WorldParams,
+        restored: Option<Arc<WorldAggregate>>,
+    ) -> Self {
+        Self {
+            store,
+            identity: identity(map_id, params),
+            last: restored,
+        }
+    }
+
+    /// Writes the published aggregate if it is not the one written last.
+    pub fn write_if_changed(&mut self, state: &ServerState) {
+        let Some(world) = state.snapshot.load().aggregate.clone() else {
+            return;
+        };
+        if self.last.as_ref().is_some_and(|w| Arc::ptr_eq(w, &world)) {
+            return;
+        }
+        let _span = info_span!("checkpoint", inserts = world.inserts()).entered();
+        let started = Instant::now();
+        let kernel = **state.kernel.load();
+        let checkpoint = Checkpoint {
+            created_unix_ns: SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)),
+            kernel_variance: kernel.variance,
+            length_scale: kernel.length_scale,
+            world: world.state(),
+        };
+        let m = &state.metrics;
+        let written = encode(&checkpoint, self.identity)
+            .map_err(|e| e.to_string())
+            .and_then(|bytes| self.store.write(&bytes).map_err(|e| e.to_string()));
+        match written {
+            Ok(path) => {
+                m.checkpoint_write.record(started.elapsed());
+                m.checkpoints_written.fetch_add(1, Ordering::Relaxed);
+                self.last = Some(world);
+                debug!(file = %path.display(), "checkpoint written");
+            }
+            Err(e) => {
+                let failures = m.checkpoint_failures.fetch_add(1, Ordering::Relaxed) + 1;
+                // Every failure is counted; the log says so for the first and then sparsely.
+                if failures.is_power_of_two() {
+                    warn!(error = %e, failures, "checkpoint not written; the map keeps running");
+                }
+            }
+        }
+    }
+}
+
+/// Starts the checkpoint thread; it stops when `shutdown` is set (the daemon then calls
+/// [`Writer::write_if_changed`] once more after the aggregate thread has finished).
+pub fn spawn(
+    writer: Arc<Mutex<Writer>>,
+    state: Arc<ServerState>,
+    interval: Duration,
+    shutdown: Arc<AtomicBool>,
+) -> std::io::Result<JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name("rangegp-checkpoint".into())
+        .spawn(move || {
+            lower_current_thread(Background::Idle);
+            while !shutdown.load(Ordering::Relaxed) {
+                let until = Instant::now() + interval;
+                while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
+                    std::thread::sleep(
+                        until
+                            .saturating_duration_since(Instant::now())
+                            .min(Duration::from_millis(50)),
+                    );
+                }
+                writer
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .write_if_changed(&state);
+            }
+        })
+}
