@@ -77,6 +77,11 @@ impl ScanPublisher {
         })
     }
 
+    /// The sequence number the next [`ScanPublisher::publish`] will use (the first is 1).
+    pub fn next_sequence(&self) -> u64 {
+        self.next_sequence
+    }
+
     /// Publishes one scan: fills in version, publisher id, point count and the next sequence
     /// number, then sends `points` zero-copy. Returns the sequence number used.
     pub fn publish(&mut self, header: ScanHeader, points: &[ScanPoint]) -> Result<u64, PublishError> {

@@ -69,7 +69,7 @@ impl Default for CheckpointConfig {
     fn default() -> Self {
         Self {
             dir: None,
-            interval_ms: 500,
+            interval_ms: 250,
             keep: 2,
         }
     }

@@ -1,6 +1,8 @@
 //! Shared harness for rangegp's end-to-end tests: a daemon on its own loopback endpoint and its
 //! own iceoryx2 service, a client, a publisher, and bounded waits. No mocks: real transports.
 
+pub mod child;
+
 use anyhow::{bail, Result};
 use rangegp_client::scangen::ScanGenerator;
 use rangegp_client::transport::free_loopback_endpoint;

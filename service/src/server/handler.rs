@@ -167,7 +167,8 @@ fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failur
 
 fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
     let snap = state.snapshot.load_full();
-    if snap.maps.is_empty() {
+    // A restarted daemon answers from its restored aggregate before the first new scan.
+    if snap.maps.is_empty() && snap.aggregate.as_ref().is_none_or(|a| a.is_empty()) {
         return fail(ErrorCode::NoMap, "no scan has been mapped yet");
     }
     Ok(snap)

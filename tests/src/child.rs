@@ -1,0 +1,97 @@
+//! Child processes for crash tests: the test binary runs one of its own `#[ignore]`d tests in a
+//! new process (`<test> --exact --ignored`), handing it its role in an environment variable, so
+//! that a test can `kill -9` a real daemon or a real publisher without any extra binary.
+
+use anyhow::{bail, Context, Result};
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{self, Receiver};
+use std::time::{Duration, Instant};
+
+/// Environment variable carrying the child's arguments; unset in a normal test run.
+pub const ARGS_ENV: &str = "RANGEGP_CHILD_ARGS";
+
+/// What a child says is marked with this, so that the test harness's own output is told apart.
+pub const LINE_PREFIX: &str = "@child ";
+
+/// The arguments of this process when it runs as a child, `None` in a normal test run.
+pub fn args() -> Option<String> {
+    std::env::var(ARGS_ENV).ok()
+}
+
+/// Tells the parent something (`@child <what>` on stdout, flushed).
+pub fn say(what: &str) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{LINE_PREFIX}{what}");
+    let _ = out.flush();
+}
+
+/// A child process and what it says.
+pub struct ChildProcess {
+    child: Child,
+    lines: Receiver<String>,
+}
+
+impl ChildProcess {
+    /// Runs the ignored test `test_name` of this test binary as a child with `args`.
+    pub fn spawn(test_name: &str, args: &str) -> Result<Self> {
+        let exe = std::env::current_exe().context("locating the test binary")?;
+        let mut child = Command::new(exe)
+            .args([
+                test_name,
+                "--exact",
+                "--ignored",
+                "--nocapture",
+                "--test-threads=1",
+            ])
+            .env(ARGS_ENV, args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .context("spawning a child process")?;
+        let stdout = child.stdout.take().context("child stdout")?;
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                // libtest may have written "test <name> ... " on the same line first.
+                if let Some(at) = line.find(LINE_PREFIX) {
+                    if tx.send(line[at + LINE_PREFIX.len()..].to_owned()).is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        Ok(Self { child, lines })
+    }
+
+    /// Waits (at most `timeout`) for the child to say a line starting with `prefix`; returns it.
+    pub fn expect(&mut self, prefix: &str, timeout: Duration) -> Result<String> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(line) if line.starts_with(prefix) => return Ok(line),
+                Ok(_) => {}
+                Err(_) => {
+                    let status = self.child.try_wait().ok().flatten();
+                    bail!("child did not say {prefix:?} within {timeout:?} (exit status: {status:?})")
+                }
+            }
+        }
+    }
+
+    /// `kill -9` and reap.
+    pub fn kill(mut self) -> Result<()> {
+        self.child.kill().context("SIGKILL")?;
+        self.child.wait().context("reaping the child")?;
+        Ok(())
+    }
+}
+
+impl Drop for ChildProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
