@@ -55,9 +55,18 @@ pub struct ClientBuilder {
     mode: String,
     timeout: Duration,
     encoding: Encoding,
+    config_file: Option<std::path::PathBuf>,
 }
 
 impl ClientBuilder {
+    /// A full Zenoh JSON5 configuration (TLS certificates, router endpoints); when set,
+    /// [`ClientBuilder::connect`] and [`ClientBuilder::mode`] are ignored. See
+    /// `deploy/zenoh-planner.json5`.
+    pub fn config_file(mut self, path: impl Into<std::path::PathBuf>) -> Self {
+        self.config_file = Some(path.into());
+        self
+    }
+
     /// Endpoints to connect to (for example `tcp/127.0.0.1:7447`).
     pub fn connect(mut self, endpoints: impl IntoIterator<Item = impl Into<String>>) -> Self {
         self.connect = endpoints.into_iter().map(Into::into).collect();
@@ -85,7 +94,12 @@ impl ClientBuilder {
     /// Opens the Zenoh session (blocking).
     pub fn open(self) -> Result<Client, ClientError> {
         let keys = MapKeys::new(&self.map_id)?;
-        let config = zenoh_config(&self.mode, &[], &self.connect, false)?;
+        let config = match &self.config_file {
+            Some(path) => {
+                zenoh::Config::from_file(path).map_err(|e| ClientError::Transport(e.to_string()))?
+            }
+            None => zenoh_config(&self.mode, &[], &self.connect, false)?,
+        };
         let session = zenoh::open(config)
             .wait()
             .map_err(|e| ClientError::Transport(e.to_string()))?;
@@ -116,6 +130,7 @@ impl Client {
             mode: "peer".into(),
             timeout: Duration::from_secs(10),
             encoding: Encoding::Bincode,
+            config_file: None,
         }
     }
 
