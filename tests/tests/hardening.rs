@@ -196,7 +196,7 @@ fn a_storm_of_malformed_scans_changes_nothing_and_every_valid_scan_is_taken() ->
         *injected.entry(reason).or_default() += 1;
         sent += 2;
         // Stay inside the subscriber's buffer (8): iceoryx2 would overwrite the oldest sample.
-        if sent % 6 == 0 || i + 1 == n {
+        if sent.is_multiple_of(6) || i + 1 == n {
             h.wait_status("the daemon to take the batch", |s| s.scans_received == sent)?;
         }
         if i % 2000 == 1999 {

@@ -52,6 +52,9 @@ pub struct Restored {
     pub world: WorldAggregate,
 }
 
+/// A checkpoint file passed over at restore, and why.
+pub type Rejected = (PathBuf, RestoreError);
+
 const PREFIX: &str = "aggregate-";
 const SUFFIX: &str = ".ckpt";
 
@@ -96,7 +99,7 @@ impl Store {
                 Some((generation, e.path()))
             })
             .collect();
-        found.sort_by(|a, b| b.0.cmp(&a.0));
+        found.sort_by_key(|g| std::cmp::Reverse(g.0));
         Ok(found)
     }
 
@@ -136,7 +139,7 @@ impl Store {
         &self,
         identity: u64,
         params: &WorldParams,
-    ) -> Result<(Option<Restored>, Vec<(PathBuf, RestoreError)>), StoreError> {
+    ) -> Result<(Option<Restored>, Vec<Rejected>), StoreError> {
         let mut rejected = Vec::new();
         for (generation, path) in self.generations()? {
             let loaded = fs::read(&path)
