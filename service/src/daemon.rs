@@ -485,15 +485,18 @@ fn aggregate_loop(
                 warn!(error = %e, "aggregate insert failed; scan kept in the window only");
             }
         }
-        let rest = pace.min_interval.saturating_sub(started.elapsed());
-        let until = Instant::now() + rest;
-        while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
-            std::thread::sleep(
-                until
-                    .saturating_duration_since(Instant::now())
-                    .min(Duration::from_millis(50)),
-            );
-        }
+        sleep_until(started + pace.min_interval, shutdown);
+    }
+}
+
+/// Sleeps until `until` or until `shutdown` is set, whichever comes first (checked every 50 ms).
+pub(crate) fn sleep_until(until: Instant, shutdown: &AtomicBool) {
+    while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
+        std::thread::sleep(
+            until
+                .saturating_duration_since(Instant::now())
+                .min(Duration::from_millis(50)),
+        );
     }
 }
 

@@ -99,6 +99,14 @@ pub fn world(seed: u64, scans: usize) -> ScanGenerator {
     ScanGenerator::new(seed, 60.0, ScannerPreset::seed000(), scans, 1.0)
 }
 
+/// A test size from the environment variable `var` (long variants), `default` otherwise.
+pub fn env_count(var: &str, default: usize) -> usize {
+    std::env::var(var)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
 /// Root mean square.
 pub fn rms(v: &[f64]) -> f64 {
     (v.iter().map(|e| e * e).sum::<f64>() / v.len().max(1) as f64).sqrt()

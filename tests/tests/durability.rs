@@ -22,18 +22,11 @@ use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
-use rangegp_tests::{unique_id, world, Harness, WAIT};
+use rangegp_tests::{env_count, unique_id, world, Harness, WAIT};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-
-fn count(var: &str, default: usize) -> usize {
-    std::env::var(var)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
 
 fn temp_dir(name: &str) -> Result<PathBuf> {
     let dir = std::env::temp_dir().join(unique_id(name));
@@ -190,7 +183,7 @@ impl Replay {
 
 #[test]
 fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()> {
-    let cycles = count("RANGEGP_KILL_CYCLES", 20);
+    let cycles = env_count("RANGEGP_KILL_CYCLES", 20);
     let dir = temp_dir("kill")?;
     let mut base = Config {
         map_id: unique_id("kill"),
@@ -375,7 +368,7 @@ fn corrupt(valid: &[u8], rng: &mut impl Rng) -> Vec<u8> {
 
 #[test]
 fn every_corrupted_checkpoint_is_rejected_and_the_daemon_starts() -> Result<()> {
-    let corruptions = count("RANGEGP_CORRUPTIONS", 1000);
+    let corruptions = env_count("RANGEGP_CORRUPTIONS", 1000);
     let dir = temp_dir("corrupt")?;
     let ckpt = dir.join("checkpoints");
     // A real checkpoint: a daemon maps a few scans and shuts down (the final write).

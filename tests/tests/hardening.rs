@@ -7,7 +7,7 @@
 use rangegp_client::scangen::now_ns;
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN};
-use rangegp_tests::{world, Harness, WAIT};
+use rangegp_tests::{env_count, world, Harness, WAIT};
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -123,10 +123,7 @@ const KINDS: usize = 15;
 
 #[test]
 fn a_storm_of_malformed_scans_changes_nothing_and_every_valid_scan_is_taken() -> anyhow::Result<()> {
-    let n: u64 = std::env::var("RANGEGP_STORM")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(10_000);
+    let n = env_count("RANGEGP_STORM", 10_000) as u64;
     let h = Harness::start(|c| {
         c.ingest.max_points = 2000;
         // A burst of valid scans is skipped (newest wins), not queued behind the fitter.

@@ -38,6 +38,9 @@ pub struct Checkpoint {
 /// Why a decoded checkpoint cannot be restored.
 #[derive(Debug, Error, PartialEq)]
 pub enum RestoreError {
+    /// The file cannot be read (permissions, I/O error, removed meanwhile).
+    #[error("unreadable: {0}")]
+    Unreadable(std::io::ErrorKind),
     /// The file itself is damaged or from elsewhere.
     #[error(transparent)]
     Format(#[from] FormatError),

@@ -110,10 +110,6 @@ impl Store {
         let generation = existing.first().map_or(1, |g| g.0 + 1);
         let path = self.dir.join(format!("{PREFIX}{generation:020}{SUFFIX}"));
         let tmp = self.dir.join(format!(".{PREFIX}{generation:020}{SUFFIX}.tmp"));
-        let write_err = |p: &Path| {
-            let p = p.to_owned();
-            move |source| StoreError::Write { path: p, source }
-        };
         let result = (|| {
             let mut file = File::create(&tmp)?;
             file.write_all(bytes)?;
@@ -123,7 +119,7 @@ impl Store {
         })();
         if let Err(e) = result {
             let _ = fs::remove_file(&tmp);
-            return Err(write_err(&path)(e));
+            return Err(StoreError::Write { path, source: e });
         }
         for (_, old) in existing.iter().skip(self.keep.saturating_sub(1)) {
             if let Err(e) = fs::remove_file(old) {
@@ -143,7 +139,7 @@ impl Store {
         let mut rejected = Vec::new();
         for (generation, path) in self.generations()? {
             let loaded = fs::read(&path)
-                .map_err(|e| RestoreError::Invalid(io_reason(&e)))
+                .map_err(|e| RestoreError::Unreadable(e.kind()))
                 .and_then(|bytes| Ok(decode(&bytes, identity)?))
                 .and_then(|checkpoint| Ok((checkpoint.restore(params)?, checkpoint)));
             match loaded {
@@ -159,14 +155,6 @@ impl Store {
             }
         }
         Ok((None, rejected))
-    }
-}
-
-fn io_reason(e: &std::io::Error) -> &'static str {
-    match e.kind() {
-        std::io::ErrorKind::PermissionDenied => "unreadable: permission denied",
-        std::io::ErrorKind::NotFound => "vanished while reading",
-        _ => "unreadable: I/O error",
     }
 }
 

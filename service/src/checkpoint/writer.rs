@@ -3,6 +3,7 @@
 //! queries never wait for the disk.
 
 use super::{encode, identity, Checkpoint, Store};
+use crate::daemon::sleep_until;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::priority::{lower_current_thread, Background};
 use crate::server::ServerState;
@@ -90,14 +91,7 @@ pub fn spawn(
         .spawn(move || {
             lower_current_thread(Background::Idle);
             while !shutdown.load(Ordering::Relaxed) {
-                let until = Instant::now() + interval;
-                while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
-                    std::thread::sleep(
-                        until
-                            .saturating_duration_since(Instant::now())
-                            .min(Duration::from_millis(50)),
-                    );
-                }
+                sleep_until(Instant::now() + interval, &shutdown);
                 writer
                     .lock()
                     .unwrap_or_else(PoisonError::into_inner)
