@@ -254,7 +254,7 @@ impl Client {
             .session
             .get(key)
             .payload(payload)
-            .encoding(encoding.mime())
+            .encoding(crate::transport::zenoh_encoding(encoding))
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .wait()
@@ -313,7 +313,7 @@ impl Client {
             .session
             .get(key)
             .payload(payload)
-            .encoding(self.encoding.mime())
+            .encoding(crate::transport::zenoh_encoding(self.encoding))
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .await

@@ -1,6 +1,38 @@
-//! Zenoh configuration from plain settings (mode, endpoints, scouting).
+//! Zenoh configuration from plain settings (mode, endpoints, scouting), and the Zenoh labels
+//! of the protocol's encodings.
 
+use rangegp_proto::codec::Encoding;
+use std::sync::LazyLock;
 use thiserror::Error;
+
+/// The label of bincode payloads, built once.
+static BINCODE_LABEL: LazyLock<zenoh::bytes::Encoding> =
+    LazyLock::new(|| zenoh::bytes::Encoding::from(Encoding::Bincode.mime()));
+
+/// The label of JSON payloads (one of Zenoh's predefined encodings).
+static JSON_LABEL: LazyLock<zenoh::bytes::Encoding> =
+    LazyLock::new(|| zenoh::bytes::Encoding::from(Encoding::Json.mime()));
+
+/// The Zenoh encoding label of `encoding`: a clone of one built at first use. Building the
+/// custom bincode label afresh for every message (parse plus a new schema buffer) was measured
+/// at +40–55 µs of round trip per reply on a 2-core machine; a clone shares the buffer.
+pub fn zenoh_encoding(encoding: Encoding) -> zenoh::bytes::Encoding {
+    match encoding {
+        Encoding::Bincode => BINCODE_LABEL.clone(),
+        Encoding::Json => JSON_LABEL.clone(),
+    }
+}
+
+/// The protocol encoding a Zenoh label names: JSON for JSON, bincode otherwise (the default).
+pub fn protocol_encoding(label: &zenoh::bytes::Encoding) -> Encoding {
+    if label == &*JSON_LABEL {
+        Encoding::Json
+    } else if label == &*BINCODE_LABEL {
+        Encoding::Bincode
+    } else {
+        Encoding::from_mime(&label.to_string())
+    }
+}
 
 /// A Zenoh configuration could not be built.
 #[derive(Debug, Error)]

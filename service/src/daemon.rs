@@ -18,7 +18,7 @@ use crate::metrics::Metrics;
 use crate::priority::{lower_current_thread, Background};
 use crate::server::{QueryServer, ServerError, ServerState};
 use arc_swap::ArcSwap;
-use rangegp_client::transport::{zenoh_config, TransportConfigError};
+use rangegp_client::transport::{zenoh_config, zenoh_encoding, TransportConfigError};
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::PROTOCOL_VERSION;
@@ -413,7 +413,11 @@ fn announce(
     };
     match codec::encode(Encoding::Bincode, &event) {
         Ok(bytes) => {
-            if let Err(e) = updates.put(bytes).encoding(Encoding::Bincode.mime()).wait() {
+            if let Err(e) = updates
+                .put(bytes)
+                .encoding(zenoh_encoding(Encoding::Bincode))
+                .wait()
+            {
                 debug!(error = %e, "map update not published");
             }
         }

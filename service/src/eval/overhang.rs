@@ -115,7 +115,7 @@ fn cast_on_heights(gp: &ElevationGp, origin: Vector3<f64>, dir: Vector3<f64>, ma
     };
     let start = side(0.0).signum();
     let samples = (max_range / 0.1).ceil() as usize;
-    root::first_crossing(|t| Some(-start * side(t)), 0.0, max_range, samples).unwrap_or(max_range)
+    root::first_crossing(|t| Some(-start * side(t)), 0.0, max_range, samples).map_or(max_range, |r| r.t)
 }
 
 /// Per-scan optimum (σ², ℓ) of the range GP under `target` on a compact patch of rays.

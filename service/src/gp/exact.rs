@@ -93,11 +93,7 @@ impl<const D: usize> ExactGp<D> {
 
     /// Posterior mean of the residual at `x`: k*ᵀ α (O(n)).
     pub fn mean(&self, x: &[f64; D]) -> f64 {
-        self.inputs
-            .iter()
-            .zip(&self.alpha)
-            .map(|(xi, a)| self.kernel.between(x, xi) * a)
-            .sum()
+        self.kernel.weighted_sum(x, &self.inputs, &self.alpha)
     }
 
     /// Posterior mean and latent variance k(x,x) − ‖L⁻¹ k*‖² at `x` (O(n²)); never negative.

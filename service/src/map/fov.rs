@@ -6,6 +6,8 @@ use std::f64::consts::{PI, TAU};
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FieldOfView {
     inclination: (f64, f64),
+    /// cos of the inclination interval's ends (high end first): the band as bounds on z / ‖v‖.
+    cos_band: (f64, f64),
     azimuth_start: f64,
     azimuth_width: f64,
 }
@@ -38,18 +40,29 @@ impl FieldOfView {
         } else {
             (start - margin, width + 2.0 * margin)
         };
+        let inclination = ((lo - margin).max(0.0), (hi + margin).min(PI));
         Self {
-            inclination: ((lo - margin).max(0.0), (hi + margin).min(PI)),
+            inclination,
+            cos_band: (inclination.1.cos(), inclination.0.cos()),
             azimuth_start,
             azimuth_width,
         }
     }
 
-    /// True when the direction (inclination, azimuth) lies inside.
-    pub fn contains(&self, inclination: f64, azimuth: f64) -> bool {
-        inclination >= self.inclination.0
-            && inclination <= self.inclination.1
-            && (azimuth - self.azimuth_start).rem_euclid(TAU) <= self.azimuth_width
+    /// The inclination interval (low, high), radians.
+    pub fn inclination(&self) -> (f64, f64) {
+        self.inclination
+    }
+
+    /// True when the sensor-frame vector `v` of length `norm` (> 0) points inside: the band
+    /// test on z / ‖v‖ needs no inverse trigonometry, and a full-turn arc none at all.
+    pub fn contains_vector(&self, v: &[f64; 3], norm: f64) -> bool {
+        let c = v[2] / norm;
+        if c < self.cos_band.0 || c > self.cos_band.1 {
+            return false;
+        }
+        self.azimuth_width >= TAU
+            || (v[1].atan2(v[0]) - self.azimuth_start).rem_euclid(TAU) <= self.azimuth_width
     }
 }
 
@@ -57,13 +70,48 @@ impl FieldOfView {
 mod tests {
     use super::*;
 
+    /// The definition on angles, for reference.
+    fn contains(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {
+        inclination >= fov.inclination.0
+            && inclination <= fov.inclination.1
+            && (azimuth - fov.azimuth_start).rem_euclid(TAU) <= fov.azimuth_width
+    }
+
+    fn sees(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {
+        fov.contains_vector(&crate::gp::sphere::to_sphere(inclination, azimuth, 2.0), 2.0)
+    }
+
     #[test]
     fn forward_arc_and_wrapping_arc() {
         let fwd = FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01);
-        assert!(fwd.contains(1.7, 1.0) && !fwd.contains(1.7, 3.0) && !fwd.contains(1.5, 0.0));
+        assert!(sees(&fwd, 1.7, 1.0) && !sees(&fwd, 1.7, 3.0) && !sees(&fwd, 1.5, 0.0));
         let back = FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0);
-        assert!(back.contains(1.6, 3.1) && back.contains(1.6, -3.1) && !back.contains(1.6, 0.0));
+        assert!(sees(&back, 1.6, 3.1) && sees(&back, 1.6, -3.1) && !sees(&back, 1.6, 0.0));
         let full: Vec<(f64, f64)> = (0..360).map(|i| (1.6, (i as f64).to_radians() - PI)).collect();
-        assert!(FieldOfView::covering(&full, 0.01).contains(1.6, 0.123));
+        let full = FieldOfView::covering(&full, 0.01);
+        assert!(sees(&full, 1.6, 0.123) && !sees(&full, 1.3, 0.123));
+        assert!((full.inclination().1 - full.inclination().0 - 0.02).abs() < 1e-12);
+    }
+
+    #[test]
+    fn vector_test_agrees_with_the_angle_test() {
+        use crate::gp::sphere::{angles_of, to_sphere};
+        let fovs = [
+            FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01),
+            FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0),
+            FieldOfView::covering(&[(1.2, -PI), (1.9, 0.0), (1.5, 2.0), (1.5, -2.0)], 0.05),
+        ];
+        let mut disagreements = 0;
+        for fov in &fovs {
+            for i in 0..=90 {
+                for j in 0..180 {
+                    let (t, p) = (PI * i as f64 / 90.0, -PI + TAU * j as f64 / 180.0);
+                    let v = to_sphere(t, p, 3.7);
+                    let (t2, p2) = angles_of(v);
+                    disagreements += usize::from(contains(fov, t2, p2) != fov.contains_vector(&v, 3.7));
+                }
+            }
+        }
+        assert_eq!(disagreements, 0);
     }
 }

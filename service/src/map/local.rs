@@ -7,6 +7,7 @@ use super::root;
 use super::tiles::{TiledGp, Tiling, TrainingRay};
 use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
 use nalgebra::{Isometry3, Vector3};
+use std::f64::consts::FRAC_PI_2;
 use thiserror::Error;
 
 /// One returned ray of a validated scan, in the sensor frame.
@@ -68,6 +69,15 @@ pub enum RangeTarget {
 
 /// Smallest inverse range a prediction is clamped to, 1/m (a 1 km ray).
 const MIN_INVERSE_RANGE: f64 = 1e-3;
+
+/// Largest angular step, radians, when sampling a vertical line for the field of view.
+const FOV_STEP_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
+
+/// Bisections of each end of the field of view on a vertical line (step / 2¹⁴: < 0.002°).
+const FOV_BISECTIONS: usize = 14;
+
+/// Coarse samples of the first-crossing search down the field of view's part of a vertical line.
+const ELEVATION_SAMPLES: usize = 12;
 
 impl RangeTarget {
     /// The modelled value of range `r`.
@@ -258,16 +268,21 @@ impl LocalRangeMap {
 
     /// Sensor-frame angles and distance of map point `p`, if inside the observed field of view.
     fn look_at(&self, p: &Vector3<f64>) -> Option<(f64, f64, f64)> {
+        let (v, dist) = self.sensor_vector(p)?;
+        let (inc, az) = sphere::angles_of(v);
+        Some((inc, az, dist))
+    }
+
+    /// Sensor-frame vector to map point `p` and its length, if inside the observed field of
+    /// view (no inverse trigonometry: the membership test of every search).
+    fn sensor_vector(&self, p: &Vector3<f64>) -> Option<([f64; 3], f64)> {
         let q = self
             .pose
             .rotation
             .inverse_transform_vector(&(p - self.sensor_position()));
         let dist = q.norm();
-        if dist <= 1e-9 || dist > self.max_range {
-            return None;
-        }
-        let (inc, az) = sphere::angles_of([q.x, q.y, q.z]);
-        self.fov.contains(inc, az).then_some((inc, az, dist))
+        let v = [q.x, q.y, q.z];
+        (dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&v, dist)).then_some((v, dist))
     }
 
     /// Signed gap `‖p − s‖ − μ(angles of p)`: negative in free space, positive behind the surface.
@@ -276,11 +291,16 @@ impl LocalRangeMap {
             .map(|(inc, az, dist)| dist - self.mean_range(inc, az))
     }
 
-    /// Delta-method variance of the root `t` (at map point `p`) of `gap`.
-    fn root_variance(&self, gap: impl Fn(f64) -> Option<f64>, p: &Vector3<f64>, t: f64) -> Option<f64> {
+    /// Delta-method variance of `root` (at map point `p`) of `gap`.
+    fn root_variance(
+        &self,
+        gap: impl Fn(f64) -> Option<f64>,
+        p: &Vector3<f64>,
+        root: root::Root,
+    ) -> Option<f64> {
         let (inc, az, _) = self.look_at(p)?;
         let (_, var_r) = self.predict_range(inc, az);
-        root::root_variance(gap, t, var_r)
+        root::root_variance(gap, root, var_r)
     }
 
     /// Surface height at map (x, y): the first crossing of the vertical line from above
@@ -288,32 +308,65 @@ impl LocalRangeMap {
     pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
         let (top, span) = self.vertical_fov(x, y)?;
         let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
-        let t = root::first_crossing(gap, 0.0, span, 24)?;
-        let var = self.root_variance(gap, &Vector3::new(x, y, top - t), t)?;
-        Some(HeightEstimate { z: top - t, var })
+        let root = root::first_crossing(gap, 0.0, span, ELEVATION_SAMPLES)?;
+        let var = self.root_variance(gap, &Vector3::new(x, y, top - root.t), root)?;
+        Some(HeightEstimate { z: top - root.t, var })
     }
 
     /// The part of the vertical line at (x, y) inside the observed field of view, as its top z
     /// and length (angles only: cheap), or `None` when it misses the field of view.
+    ///
+    /// Seen from the sensor, the line sweeps half a great circle, elevation ψ ↦ z = ρ tan ψ.
+    /// The sensor frame's inclination differs from π/2 − ψ by at most the sensor's tilt, which
+    /// bounds the ψ that can lie in the band; that arc is sampled at steps finer than the band
+    /// (a great-circle arc crossing the band spans at least its width, so none is stepped over)
+    /// and both ends are bisected.
     fn vertical_fov(&self, x: f64, y: f64) -> Option<(f64, f64)> {
         let s = self.sensor_position();
         let rho = (x - s.x).hypot(y - s.y);
-        if rho >= self.max_range {
+        if rho >= self.max_range || rho < 1e-6 {
             return None;
         }
+        let tilt = (self.pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos();
+        let (band_lo, band_hi) = self.fov.inclination();
         let half = (self.max_range * self.max_range - rho * rho).sqrt();
-        let coarse = 96;
-        let (mut top, mut bottom) = (None, None);
-        for k in 0..=coarse {
-            let z = s.z + half - 2.0 * half * k as f64 / coarse as f64;
-            if self.look_at(&Vector3::new(x, y, z)).is_some() {
-                top.get_or_insert(z);
-                bottom = Some(z);
-            }
+        let reach = half.atan2(rho);
+        let psi_top = (FRAC_PI_2 - band_lo + tilt).min(reach);
+        let psi_bottom = (FRAC_PI_2 - band_hi - tilt).max(-reach);
+        if psi_top <= psi_bottom {
+            return None;
         }
-        let step = 2.0 * half / coarse as f64;
-        let (top, bottom) = (top? + step, bottom? - step);
-        Some((top, top - bottom))
+        let z_at = |psi: f64| s.z + rho * psi.tan();
+        let sees = |psi: f64| self.sensor_vector(&Vector3::new(x, y, z_at(psi))).is_some();
+        let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
+        let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;
+        let psi = |k: usize| psi_top - (psi_top - psi_bottom) * k as f64 / n as f64;
+        let first = (0..=n).find(|&k| sees(psi(k)))?;
+        let last = (first..=n).rev().find(|&k| sees(psi(k)))?;
+        let edge = |inside: f64, outside: f64| {
+            let (mut a, mut b) = (inside, outside);
+            for _ in 0..FOV_BISECTIONS {
+                let m = 0.5 * (a + b);
+                if sees(m) {
+                    a = m;
+                } else {
+                    b = m;
+                }
+            }
+            a
+        };
+        let top = if first == 0 {
+            psi(0)
+        } else {
+            edge(psi(first), psi(first - 1))
+        };
+        let bottom = if last == n {
+            psi(n)
+        } else {
+            edge(psi(last), psi(last + 1))
+        };
+        let (top, bottom) = (z_at(top), z_at(bottom));
+        (top > bottom).then_some((top, top - bottom))
     }
 
     /// Casts a map-frame ray (unit `dir`) through this map's surface up to `max_range`.
@@ -322,8 +375,9 @@ impl LocalRangeMap {
         let point = |t: f64| origin + dir * t;
         let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
         let gap = |t: f64| self.gap(&point(t));
-        if let Some(t) = root::first_crossing(gap, 0.0, max_range, samples) {
-            let var = self.root_variance(gap, &point(t), t)?;
+        if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
+            let t = root.t;
+            let var = self.root_variance(gap, &point(t), root)?;
             let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
             return Some(RayEstimate {
                 range: Some(t),

@@ -5,9 +5,20 @@
 /// Residuals of this size (metres) and below count as "on the surface".
 pub const ROOT_TOLERANCE_M: f64 = 1e-5;
 
+/// Last two iterates closer than this (metres) give the slope at the root as a secant.
+const SECANT_SPAN_M: f64 = 1e-3;
+
+/// A crossing: where, and the gap's slope there when the refinement already measured it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Root {
+    /// Position along the line.
+    pub t: f64,
+    slope: Option<f64>,
+}
+
 /// The first t in [t0, t1] where `gap` turns non-negative after being negative, sampled at
 /// `samples` points (a gap of `None` is "not observed" and breaks the bracket), or `None`.
-pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, samples: usize) -> Option<f64> {
+pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, samples: usize) -> Option<Root> {
     let mut prev: Option<(f64, f64)> = None;
     for k in 0..=samples {
         let t = t0 + (t1 - t0) * k as f64 / samples as f64;
@@ -23,19 +34,27 @@ pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, sample
     None
 }
 
-/// Illinois refinement of a bracket (ga < 0 ≤ gb).
+/// Illinois refinement of a bracket (ga < 0 ≤ gb). The secant through the last two iterates
+/// is the slope at the root when they are close (superlinear convergence makes them so).
 fn refine(
     gap: &impl Fn(f64) -> Option<f64>,
     (mut ta, mut ga): (f64, f64),
     (mut tb, mut gb): (f64, f64),
-) -> Option<f64> {
+) -> Option<Root> {
     let mut side = 0i8;
+    let mut previous = (tb, gb);
     for _ in 0..60 {
         let t = (ta * gb - tb * ga) / (gb - ga);
         let g = gap(t)?;
-        if g.abs() < ROOT_TOLERANCE_M * 1e-2 || (tb - ta).abs() < ROOT_TOLERANCE_M {
-            return Some(t);
+        if g.abs() < ROOT_TOLERANCE_M * 0.1 || (tb - ta).abs() < ROOT_TOLERANCE_M {
+            let (tp, gp) = previous;
+            let close = (t - tp).abs() <= SECANT_SPAN_M && t != tp;
+            return Some(Root {
+                t,
+                slope: close.then(|| (g - gp) / (t - tp)),
+            });
         }
+        previous = (t, g);
         if g < 0.0 {
             ta = t;
             ga = g;
@@ -52,14 +71,21 @@ fn refine(
             side = 1;
         }
     }
-    Some(0.5 * (ta + tb))
+    Some(Root {
+        t: 0.5 * (ta + tb),
+        slope: None,
+    })
 }
 
-/// Variance of a root t of `gap` by the delta method, `var_at_root / (∂gap/∂t)²` (central
-/// difference); `None` where the slope vanishes or the gap is unobserved.
-pub fn root_variance(gap: impl Fn(f64) -> Option<f64>, t: f64, var_at_root: f64) -> Option<f64> {
+/// Variance of a root of `gap` by the delta method, `var_at_root / (∂gap/∂t)²` (the
+/// refinement's secant, else a central difference); `None` where the slope vanishes or the
+/// gap is unobserved.
+pub fn root_variance(gap: impl Fn(f64) -> Option<f64>, root: Root, var_at_root: f64) -> Option<f64> {
     let h = 1e-4;
-    let slope = (gap(t + h)? - gap(t - h)?) / (2.0 * h);
+    let slope = match root.slope {
+        Some(s) => s,
+        None => (gap(root.t + h)? - gap(root.t - h)?) / (2.0 * h),
+    };
     (slope.abs() > 1e-6).then(|| var_at_root / (slope * slope))
 }
 
@@ -71,11 +97,16 @@ mod tests {
     fn finds_the_first_of_two_crossings_with_its_delta_variance() {
         // gap(t) = sin(t) − 0.5 meets zero first at π/6.
         let gap = |t: f64| Some(t.sin() - 0.5);
-        let t = first_crossing(gap, -1.0, 3.0, 40).expect("crossing");
-        assert!((t - std::f64::consts::FRAC_PI_6).abs() < 1e-6, "{t}");
-        let v = root_variance(gap, t, 0.01).expect("slope");
+        let root = first_crossing(gap, -1.0, 3.0, 40).expect("crossing");
+        assert!((root.t - std::f64::consts::FRAC_PI_6).abs() < 1e-6, "{root:?}");
+        assert!(root.slope.is_some(), "the refinement measured the slope");
         let slope = std::f64::consts::FRAC_PI_6.cos();
-        assert!((v - 0.01 / (slope * slope)).abs() < 1e-8);
+        let expected = 0.01 / (slope * slope);
+        let v = root_variance(gap, root, 0.01).expect("slope");
+        assert!((v - expected).abs() < 1e-7, "{v} vs {expected}");
+        let unmeasured = Root { slope: None, ..root };
+        let v = root_variance(gap, unmeasured, 0.01).expect("slope");
+        assert!((v - expected).abs() < 1e-7, "{v} vs {expected}");
         assert!(first_crossing(|t: f64| Some(t - 10.0), 0.0, 5.0, 10).is_none());
         assert!(first_crossing(|t: f64| (t < 1.0).then_some(t - 2.0), 0.0, 5.0, 10).is_none());
     }

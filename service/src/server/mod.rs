@@ -11,7 +11,8 @@ use crate::map::MapSnapshot;
 use crate::metrics::Metrics;
 use arc_swap::ArcSwap;
 use handler::Endpoint;
-use rangegp_proto::codec::{self, Encoding};
+use rangegp_client::transport::{protocol_encoding, zenoh_encoding};
+use rangegp_proto::codec;
 use rangegp_proto::keys::{MapKeys, QueryKind};
 use rangegp_proto::msg::{ErrorCode, ErrorReply};
 use rangegp_proto::PROTOCOL_VERSION;
@@ -219,10 +220,7 @@ fn inline(endpoint: Endpoint, query: &Query) -> bool {
 /// Answers one query and records its latency.
 fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) {
     let started = std::time::Instant::now();
-    let encoding = query
-        .encoding()
-        .map(|e| Encoding::from_mime(&e.to_string()))
-        .unwrap_or_default();
+    let encoding = query.encoding().map(protocol_encoding).unwrap_or_default();
     let payload = query
         .payload()
         .map(|p| p.to_bytes().into_owned())
@@ -235,7 +233,7 @@ fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) {
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             if let Err(e) = query
                 .reply(query.key_expr().clone(), bytes)
-                .encoding(encoding.mime())
+                .encoding(zenoh_encoding(encoding))
                 .wait()
             {
                 warn!(error = %e, "reply failed");
@@ -257,10 +255,7 @@ fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) {
 }
 
 fn reply_error(query: &Query, code: ErrorCode, message: String) {
-    let encoding = query
-        .encoding()
-        .map(|e| Encoding::from_mime(&e.to_string()))
-        .unwrap_or_default();
+    let encoding = query.encoding().map(protocol_encoding).unwrap_or_default();
     let body = ErrorReply {
         version: PROTOCOL_VERSION,
         code,
@@ -268,7 +263,7 @@ fn reply_error(query: &Query, code: ErrorCode, message: String) {
     };
     match codec::encode(encoding, &body) {
         Ok(bytes) => {
-            if let Err(e) = query.reply_err(bytes).encoding(encoding.mime()).wait() {
+            if let Err(e) = query.reply_err(bytes).encoding(zenoh_encoding(encoding)).wait() {
                 warn!(error = %e, "error reply failed");
             }
         }

@@ -187,10 +187,11 @@ impl Aggregate for PoseAugmentedGp {
             self.look_at(pose, &p)
                 .map(|(inc, az, dist)| dist - self.mean_range(gp, pose, inc, az))
         };
-        let t = root::first_crossing(gap, 0.0, (top - bottom).max(0.1), 32)?;
+        let root = root::first_crossing(gap, 0.0, (top - bottom).max(0.1), 32)?;
+        let t = root.t;
         let (inc, az, _) = self.look_at(pose, &point(t))?;
         let (_, var_r) = self.predict_range(pose, inc, az)?;
-        let var = root::root_variance(gap, t, var_r)?;
+        let var = root::root_variance(gap, root, var_r)?;
         Some(HeightEstimate { z: top - t, var })
     }
 
