@@ -25,13 +25,28 @@ fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
     near.into_iter().take(CANDIDATES).map(|(_, m)| m).collect()
 }
 
-/// Elevation at (x, y): the answer of the window map whose sensor is nearest among those that
-/// saw it (nearest is least uncertain: range noise and footprint grow with distance), else the
-/// aggregate's where it has fused cells nearby, else none.
+/// Elevation at (x, y): the answer of the window map whose sensor is nearest among those whose
+/// view of the vertical line ends behind the surface (nearest is least uncertain: range noise
+/// and footprint grow with distance; such a view crosses the surface for certain), else of the
+/// nearest whose view crosses it anywhere (an overhang seen from below), else the aggregate's
+/// where it has fused cells nearby, else none. Checking the end of the view first costs one mean
+/// evaluation and spares a whole search of maps that cannot answer, like the nearest map at a
+/// point inside its sensor's blind zone (the field of view's part of the line is all free space).
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
-    let best = nearest(snapshot, x, y)
-        .into_iter()
-        .find_map(|m| m.elevation(x, y));
+    let mut deferred = Vec::new();
+    let mut best = None;
+    for m in nearest(snapshot, x, y) {
+        let Some(view) = m.vertical_view(x, y) else {
+            continue;
+        };
+        if !view.ends_behind_surface() {
+            deferred.push((m, view));
+        } else if let Some(e) = m.elevation_in(x, y, &view) {
+            best = Some(e);
+            break;
+        }
+    }
+    let best = best.or_else(|| deferred.iter().find_map(|(m, view)| m.elevation_in(x, y, view)));
     let answer = best.map(|e| (e, Source::Window)).or_else(|| {
         let agg = snapshot.aggregate.as_ref()?;
         agg.elevation(x, y).map(|e| (e, Source::Aggregate))
