@@ -178,6 +178,8 @@ pub struct LocalRangeMap {
     /// Acquisition time, ns.
     pub stamp_ns: u64,
     pose: Isometry3<f64>,
+    /// Angle between the sensor's z axis and the map's, radians (bounds every vertical search).
+    tilt: f64,
     prior: Prior,
     target: RangeTarget,
     max_range: f64,
@@ -206,6 +208,7 @@ impl LocalRangeMap {
             sequence: scan.sequence,
             stamp_ns: scan.stamp_ns,
             pose: scan.pose,
+            tilt: (scan.pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos(),
             prior,
             target: params.target,
             max_range: scan.max_range_m,
@@ -364,7 +367,7 @@ impl LocalRangeMap {
         if rho >= self.max_range || rho < 1e-6 {
             return None;
         }
-        let tilt = (self.pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos();
+        let tilt = self.tilt;
         let (band_lo, band_hi) = self.fov.inclination();
         let half = (self.max_range * self.max_range - rho * rho).sqrt();
         let reach = half.atan2(rho);
