@@ -114,10 +114,7 @@ impl Daemon {
         let world = restored.map(|r| Arc::new(r.world));
         let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(ServerState {
-            snapshot: ArcSwap::from_pointee(MapSnapshot {
-                maps: Vec::new(),
-                aggregate: world.clone(),
-            }),
+            snapshot: ArcSwap::from_pointee(MapSnapshot::new(Vec::new(), world.clone())),
             metrics: Arc::clone(&metrics),
             keys: config.keys(),
             max_batch: config.query.max_batch,
@@ -368,17 +365,16 @@ fn fit_loop(
                     .fetch_add(map.jittered_tiles() as u64, Ordering::Relaxed);
                 let map = Arc::new(map);
                 window.push(Arc::clone(&map));
-                let maps = window.snapshot().maps;
-                state.snapshot.rcu(|old| MapSnapshot {
-                    maps: maps.clone(),
-                    aggregate: old.aggregate.clone(),
-                });
+                let maps = window.snapshot();
+                state
+                    .snapshot
+                    .rcu(|old| maps.with_aggregate(old.aggregate.clone()));
                 let latency = received.elapsed();
                 let m = &state.metrics;
                 m.fit.record(started.elapsed());
                 m.scan_to_queryable.record(latency);
                 m.accepted.fetch_add(1, Ordering::Relaxed);
-                announce(&outputs.updates, &scan, latency, maps.len());
+                announce(&outputs.updates, &scan, latency, maps.maps().len());
                 if let Some((samples, subset)) = &outputs.learner {
                     samples.push(hyper_sample(&scan, &params, *subset));
                 }
@@ -469,10 +465,9 @@ fn aggregate_loop(
                 let s = map.sensor_position();
                 let evicted = next.evict_beyond(s.x, s.y, pace.radius_m);
                 world = Arc::new(next);
-                state.snapshot.rcu(|old| MapSnapshot {
-                    maps: old.maps.clone(),
-                    aggregate: Some(Arc::clone(&world)),
-                });
+                state
+                    .snapshot
+                    .rcu(|old| old.with_aggregate(Some(Arc::clone(&world))));
                 m.aggregate_insert.record(started.elapsed());
                 m.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
                 m.aggregate_evicted_tiles

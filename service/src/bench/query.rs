@@ -5,7 +5,7 @@ use super::gp::scans;
 use crate::config::Config;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
-use crate::map::{query, LocalRangeMap, MapSnapshot, Window};
+use crate::map::{query, LocalRangeMap, Window};
 use anyhow::Result;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -103,10 +103,7 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
         window.push(Arc::new(map));
     }
     let world = Arc::new(world);
-    let snapshot = MapSnapshot {
-        aggregate: Some(Arc::clone(&world)),
-        ..window.snapshot()
-    };
+    let snapshot = window.snapshot().with_aggregate(Some(Arc::clone(&world)));
     let mut rng = Pcg64::seed_from_u64(11);
     let centre = inputs[inputs.len() - 1].pose.translation.vector;
     let points: Vec<[f64; 2]> = (0..opts.points)
@@ -136,7 +133,7 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
     let n = points.len();
     let report = QueryReport {
         preset: opts.preset.clone(),
-        window_maps: snapshot.maps.len(),
+        window_maps: snapshot.maps().len(),
         elevation_us: per_item_us(opts.repeats, n, || {
             points.iter().for_each(|p| {
                 std::hint::black_box(query::elevation(&snapshot, p[0], p[1]));

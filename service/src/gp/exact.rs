@@ -2,6 +2,8 @@
 
 use super::cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
 use super::kernel::Kernel;
+use super::points::Points;
+use super::vector;
 use faer::linalg::triangular_solve::{solve_lower_triangular_in_place, solve_upper_triangular_in_place};
 use faer::{Mat, Par};
 
@@ -10,9 +12,10 @@ use faer::{Mat, Par};
 #[derive(Debug, Clone)]
 pub struct ExactGp<const D: usize = 3> {
     kernel: Kernel,
-    inputs: Vec<[f64; D]>,
-    /// Lower Cholesky factor of K + Σ, column-major, n × n.
-    factor_cols: Vec<f64>,
+    inputs: Points<D>,
+    /// Lower Cholesky factor of K + Σ, packed by columns: rows j..n of column j, for every j
+    /// (half the memory of a square matrix, and one unbroken stream for the variance's solve).
+    factor_packed: Vec<f64>,
     alpha: Vec<f64>,
     jitter: f64,
     log_marginal_likelihood: f64,
@@ -34,13 +37,13 @@ impl<const D: usize> ExactGp<D> {
         assert!(n > 0, "a GP needs at least one training point");
         assert_eq!(targets.len(), n, "one target per input");
         assert_eq!(noise_var.len(), n, "one noise variance per input");
-        // Only the lower triangle is read by the factorisation: fill just that half.
+        // Column by column in one vector pass each (`Kernel::values`); the factorisation reads
+        // only the lower triangle.
+        let points = Points::new(&inputs);
         let mut k = Mat::<f64>::zeros(n, n);
         for j in 0..n {
-            k[(j, j)] = kernel.between(&inputs[j], &inputs[j]) + noise_var[j];
-            for i in j + 1..n {
-                k[(i, j)] = kernel.between(&inputs[i], &inputs[j]);
-            }
+            kernel.values(&inputs[j], &points, k.col_as_slice_mut(j));
+            k[(j, j)] = kernel.diagonal(&inputs[j]) + noise_var[j];
         }
         let (llt, jitter_used) = factor_with_jitter(&k, jitter)?;
         let factor = llt.L().to_owned();
@@ -52,15 +55,15 @@ impl<const D: usize> ExactGp<D> {
         let alpha = (0..n).map(|i| rhs[(i, 0)]).collect();
         let log_marginal_likelihood =
             -0.5 * quad - log_det_half - 0.5 * n as f64 * (2.0 * std::f64::consts::PI).ln();
-        let factor_cols = (0..n)
-            .flat_map(|j| (0..n).map(move |i| (i, j)))
+        let factor_packed = (0..n)
+            .flat_map(|j| (j..n).map(move |i| (i, j)))
             .map(|(i, j)| factor[(i, j)])
             .collect();
         Ok(Self {
             kernel,
-            inputs,
-            factor_cols,
+            factor_packed,
             alpha,
+            inputs: points,
             jitter: jitter_used,
             log_marginal_likelihood,
         })
@@ -98,47 +101,46 @@ impl<const D: usize> ExactGp<D> {
 
     /// Posterior mean and latent variance k(x,x) − ‖L⁻¹ k*‖² at `x` (O(n²)); never negative.
     ///
-    /// Column-oriented forward substitution over L's contiguous columns (an axpy per column,
-    /// which vectorises), into one scratch vector: no matrix is allocated per query.
+    /// The kernel column in one vector pass, then a column-oriented forward substitution over
+    /// L's packed columns (an axpy per column, `gp::vector`), into one scratch vector.
     pub fn mean_variance(&self, x: &[f64; D]) -> (f64, f64) {
-        let n = self.inputs.len();
-        let mut v: Vec<f64> = self.inputs.iter().map(|xi| self.kernel.between(x, xi)).collect();
+        let mut v = vec![0.0; self.inputs.len()];
+        self.kernel.values(x, &self.inputs, &mut v);
         let mean = v.iter().zip(&self.alpha).map(|(k, a)| k * a).sum();
-        let mut explained = 0.0;
-        for j in 0..n {
-            let col = self.column(j);
-            let vj = v[j] / col[j];
-            explained += vj * vj;
-            for (vi, lij) in v[j + 1..].iter_mut().zip(&col[j + 1..]) {
-                *vi -= lij * vj;
-            }
-        }
+        let explained = vector::forward_explained(&self.factor_packed, &mut v);
         (mean, (self.kernel.diagonal(x) - explained).max(0.0))
-    }
-
-    /// Column `j` of the Cholesky factor as a slice (faer stores columns contiguously).
-    fn column(&self, j: usize) -> &[f64] {
-        let n = self.inputs.len();
-        &self.factor_cols[j * n..(j + 1) * n]
     }
 }
 
 impl<const D: usize> ExactGp<D> {
+    /// The packed factor as a square lower-triangular matrix (for faer's multi-column solves).
+    fn unpacked_factor(&self) -> Mat<f64> {
+        let n = self.inputs.len();
+        let mut factor = Mat::<f64>::zeros(n, n);
+        let mut packed = self.factor_packed.iter();
+        for j in 0..n {
+            for (f, p) in factor.col_as_slice_mut(j)[j..].iter_mut().zip(&mut packed) {
+                *f = *p;
+            }
+        }
+        factor
+    }
+
     /// Posterior means and latent variances at many points: one multi-column triangular solve
     /// per block of 256 queries (BLAS-3), for grids and benchmarks.
     pub fn predict_batch(&self, xs: &[[f64; D]]) -> (Vec<f64>, Vec<f64>) {
         let n = self.inputs.len();
         let mut means = Vec::with_capacity(xs.len());
         let mut vars = Vec::with_capacity(xs.len());
+        let factor = self.unpacked_factor();
         for block in xs.chunks(256) {
             let mut kstar = Mat::from_fn(n, block.len(), |i, j| {
-                self.kernel.between(&block[j], &self.inputs[i])
+                self.kernel.between(&block[j], &self.inputs.get(i))
             });
             for j in 0..block.len() {
                 means.push((0..n).map(|i| kstar[(i, j)] * self.alpha[i]).sum());
             }
-            let factor = faer::MatRef::from_column_major_slice(&self.factor_cols, n, n);
-            solve_lower_triangular_in_place(factor, kstar.as_mut(), Par::Seq);
+            solve_lower_triangular_in_place(factor.as_ref(), kstar.as_mut(), Par::Seq);
             for (j, x) in block.iter().enumerate() {
                 let explained: f64 = (0..n).map(|i| kstar[(i, j)] * kstar[(i, j)]).sum();
                 vars.push((self.kernel.diagonal(x) - explained).max(0.0));

