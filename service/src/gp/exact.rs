@@ -134,9 +134,10 @@ impl<const D: usize> ExactGp<D> {
         let mut vars = Vec::with_capacity(xs.len());
         let factor = self.unpacked_factor();
         for block in xs.chunks(256) {
-            let mut kstar = Mat::from_fn(n, block.len(), |i, j| {
-                self.kernel.between(&block[j], &self.inputs.get(i))
-            });
+            let mut kstar = Mat::<f64>::zeros(n, block.len());
+            for (j, x) in block.iter().enumerate() {
+                self.kernel.values(x, &self.inputs, kstar.col_as_slice_mut(j));
+            }
             for j in 0..block.len() {
                 means.push((0..n).map(|i| kstar[(i, j)] * self.alpha[i]).sum());
             }
