@@ -207,7 +207,7 @@ pub struct AggregateConfig {
     /// the displaced ones are counted (the window still holds them).
     pub queue_len: usize,
     /// Tiles farther than this from the newest sensor position are evicted (bounds memory:
-    /// about (2r / 2.5 m)² tiles of ~0.3 MB each), metres.
+    /// about (2r / 2.5 m)² tiles of ≤ 0.15 MB each), metres.
     pub radius_m: f64,
     /// At most one insert per this interval, milliseconds: the aggregate takes the newest fitted
     /// scan at its own pace so that it never competes with the fitter for a whole core.
