@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 
 def main() -> int:

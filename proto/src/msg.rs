@@ -233,6 +233,22 @@ pub struct QueryLatencies {
     pub status: LatencySummary,
 }
 
+/// The scan intake: whether it is subscribed, and what its bookkeeping did.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct IngestInfo {
+    /// Whether the daemon holds its iceoryx2 subscriber (false while it retries with back-off).
+    pub connected: bool,
+    /// Why the last attempt to subscribe failed (`None` once subscribed).
+    pub error: Option<String>,
+    /// Failed attempts to subscribe since start.
+    pub retries: u64,
+    /// Sources whose sequence number jumped beyond the restart window (counted anew, not
+    /// locked out).
+    pub publisher_restarts: u64,
+    /// Publishers followed to a new place after agreeing scans (a relocalisation).
+    pub relocations: u64,
+}
+
 /// The world aggregate's size and counters.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct AggregateInfo {
@@ -277,8 +293,10 @@ pub struct StatusReply {
     pub hyperparameter_updates: u64,
     /// Local experts whose Cholesky factorisation needed diagonal jitter since start.
     pub jittered_tiles: u64,
-    /// Missing sequence numbers observed, summed over publishers.
+    /// Scans lost in transport (sequence numbers that never arrived), summed over publishers.
     pub sequence_gaps: u64,
+    /// The scan intake.
+    pub ingest: IngestInfo,
     /// Local maps in the window now.
     pub window_len: u32,
     /// Window capacity.
@@ -299,6 +317,10 @@ pub struct StatusReply {
     pub queries_ok: u64,
     /// Queries answered with an error.
     pub queries_failed: u64,
+    /// Batch queries answered `overloaded` after waiting past the queue deadline.
+    pub queries_expired: u64,
+    /// Replies dropped because too many were being sent at once (a client not reading).
+    pub replies_dropped: u64,
     /// Resident set size of the daemon process, MiB (`None` where the OS does not say).
     pub rss_mb: Option<f64>,
 }

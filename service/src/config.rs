@@ -109,6 +109,21 @@ pub struct IngestConfig {
     /// Scans stamped later than this ahead of the daemon's clock are rejected
     /// (`future_timestamp`), milliseconds.
     pub max_future_ms: u64,
+    /// A sequence number further than this from the source's last accepted one (either way)
+    /// restarts its bookkeeping (counted as a publisher restart) instead of locking it out.
+    pub sequence_restart_window: u64,
+    /// Largest |x|, |y|, |z| of a sensor position, metres (`implausible_pose` beyond).
+    pub map_bounds_m: f64,
+    /// Fastest plausible motion between two scans of one publisher, m/s (`implausible_pose`).
+    pub max_speed_mps: f64,
+    /// Jump allowed on top of the speed limit (localisation noise), metres.
+    pub pose_slack_m: f64,
+    /// Consecutive scans that must agree on a new place before a relocalised publisher is
+    /// followed there (the ones before it are rejected `implausible_pose`).
+    pub pose_confirm_scans: u32,
+    /// Longest wait between attempts to subscribe when the scan service cannot be opened
+    /// (slots taken, incompatible settings), milliseconds.
+    pub max_retry_interval_ms: u64,
 }
 
 /// GP model.
@@ -251,6 +266,9 @@ pub struct QueryConfig {
     pub max_ray_range_m: f64,
     /// Threads evaluating one large batch.
     pub threads: usize,
+    /// A batch query that waited longer than this for a worker is answered `overloaded`,
+    /// milliseconds.
+    pub queue_deadline_ms: u64,
 }
 
 impl Default for Config {
@@ -278,6 +296,12 @@ impl Default for IngestConfig {
             cleanup_interval_s: 5,
             queue_len: 2,
             max_future_ms: 1000,
+            sequence_restart_window: 100_000,
+            map_bounds_m: 100_000.0,
+            max_speed_mps: 20.0,
+            pose_slack_m: 2.0,
+            pose_confirm_scans: 3,
+            max_retry_interval_ms: 10_000,
         }
     }
 }
@@ -326,6 +350,7 @@ impl Default for QueryConfig {
             max_batch: 65_536,
             max_ray_range_m: 200.0,
             threads: 2,
+            queue_deadline_ms: 500,
         }
     }
 }
@@ -388,8 +413,21 @@ impl Config {
         if self.window.capacity == 0 {
             return bad("window.capacity must be positive");
         }
-        if self.ingest.max_points == 0 || self.ingest.queue_len == 0 {
+        let i = &self.ingest;
+        if i.max_points == 0 || i.queue_len == 0 {
             return bad("ingest.max_points and ingest.queue_len must be positive");
+        }
+        if i.sequence_restart_window == 0 || i.pose_confirm_scans == 0 || i.max_retry_interval_ms == 0 {
+            return bad("ingest.sequence_restart_window, ingest.pose_confirm_scans and ingest.max_retry_interval_ms must be positive");
+        }
+        if !positive(i.map_bounds_m)
+            || !positive(i.max_speed_mps)
+            || !(i.pose_slack_m.is_finite() && i.pose_slack_m >= 0.0)
+        {
+            return bad("ingest.map_bounds_m and ingest.max_speed_mps must be positive, ingest.pose_slack_m finite and non-negative");
+        }
+        if self.query.queue_deadline_ms == 0 {
+            return bad("query.queue_deadline_ms must be positive");
         }
         if self.query.max_batch == 0 || self.query.threads == 0 || !positive(self.query.max_ray_range_m) {
             return bad("query.max_batch, query.threads and query.max_ray_range_m must be positive");
@@ -411,6 +449,17 @@ impl Config {
             self.keys().scan_service()
         } else {
             self.ingest.service_name.clone()
+        }
+    }
+
+    /// The pose plausibility limits of `[ingest]`.
+    pub fn pose_limits(&self) -> crate::ingest::PoseLimits {
+        let i = &self.ingest;
+        crate::ingest::PoseLimits {
+            bounds_m: i.map_bounds_m,
+            max_speed_mps: i.max_speed_mps,
+            slack_m: i.pose_slack_m,
+            confirm_scans: i.pose_confirm_scans,
         }
     }
 

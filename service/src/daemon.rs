@@ -16,7 +16,7 @@ use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::metrics::prometheus::Exporter;
 use crate::metrics::Metrics;
 use crate::priority::{lower_current_thread, Background};
-use crate::server::{QueryServer, ServerError, ServerState};
+use crate::server::{QueryServer, ServerError, ServerState, MAX_REQUEST_BYTES};
 use arc_swap::ArcSwap;
 use rangegp_client::transport::{zenoh_config, zenoh_encoding, TransportConfigError};
 use rangegp_proto::codec::{self, Encoding};
@@ -88,12 +88,24 @@ impl Daemon {
         config.validate()?;
         let zconf = match &config.zenoh.config_file {
             Some(path) => zenoh::Config::from_file(path).map_err(|e| StartError::Zenoh(e.to_string()))?,
-            None => zenoh_config(
-                &config.zenoh.mode,
-                &config.zenoh.listen,
-                &config.zenoh.connect,
-                config.zenoh.multicast_scouting,
-            )?,
+            None => {
+                let mut zconf = zenoh_config(
+                    &config.zenoh.mode,
+                    &config.zenoh.listen,
+                    &config.zenoh.connect,
+                    config.zenoh.multicast_scouting,
+                )?;
+                // Zenoh reassembles a message up to this size only: a larger request is dropped
+                // fragment by fragment before it costs memory (docs/OPERATIONS.md).
+                let key = "transport/link/rx/max_message_size";
+                zconf
+                    .insert_json5(key, &MAX_REQUEST_BYTES.to_string())
+                    .map_err(|e| TransportConfigError {
+                        key: key.into(),
+                        reason: e.to_string(),
+                    })?;
+                zconf
+            }
         };
         let session = zenoh::open(zconf)
             .wait()
@@ -124,6 +136,7 @@ impl Daemon {
             kernel: Arc::clone(&kernel),
             nugget_m2: params.nugget_m2,
             aggregate_radius_m: config.aggregate.enabled.then_some(config.aggregate.radius_m),
+            queue_deadline: Duration::from_millis(config.query.queue_deadline_ms),
         });
         let server = QueryServer::start(&session, Arc::clone(&state), config.query.threads, 64)?;
         let exporter = match config.metrics.listen.as_str() {
@@ -215,6 +228,9 @@ impl Daemon {
                 },
                 poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
                 cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),
+                sequence_restart_window: config.ingest.sequence_restart_window,
+                pose: config.pose_limits(),
+                max_retry_interval: Duration::from_millis(config.ingest.max_retry_interval_ms),
             },
             Arc::clone(&queue),
             Arc::clone(&metrics),
@@ -423,8 +439,8 @@ fn announce(
 
 /// Folds fitted scans into the world aggregate at most once per `pace.min_interval`, newest
 /// first: each insert goes into a copy of the published map (tiles are shared, so a copy costs
-/// the cells), tiles beyond `pace.radius_m` of the sensor are evicted, and the copy is
-/// published. A failed insert is counted and logged; the published map stays as it was.
+/// the cells), tiles beyond `pace.radius_m` of the sensor are evicted (never by a scan far from
+/// everything mapped: [`WorldAggregate::insert_and_evict`]), and the copy is published. A failed insert is counted and logged; the published map stays as it was.
 fn aggregate_loop(
     feed: &AggregateFeed,
     state: &ServerState,
@@ -460,10 +476,8 @@ fn aggregate_loop(
         .entered();
         let started = Instant::now();
         let mut next = WorldAggregate::clone(&world);
-        match pool.install(|| next.insert(&scan, &map)) {
-            Ok(()) => {
-                let s = map.sensor_position();
-                let evicted = next.evict_beyond(s.x, s.y, pace.radius_m);
+        match pool.install(|| next.insert_and_evict(&scan, &map, pace.radius_m)) {
+            Ok(evicted) => {
                 world = Arc::new(next);
                 state
                     .snapshot

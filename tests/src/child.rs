@@ -81,6 +81,21 @@ impl ChildProcess {
         }
     }
 
+    /// Freezes the child (SIGSTOP): it keeps its sockets but reads nothing.
+    pub fn stop(&self) -> Result<()> {
+        let status = Command::new("kill")
+            .args(["-STOP", &self.child.id().to_string()])
+            .status()
+            .context("running kill -STOP")?;
+        anyhow::ensure!(status.success(), "kill -STOP failed: {status}");
+        Ok(())
+    }
+
+    /// The child's process id.
+    pub fn id(&self) -> u32 {
+        self.child.id()
+    }
+
     /// `kill -9` and reap.
     pub fn kill(mut self) -> Result<()> {
         self.child.kill().context("SIGKILL")?;

@@ -99,6 +99,21 @@ pub fn world(seed: u64, scans: usize) -> ScanGenerator {
     ScanGenerator::new(seed, 60.0, ScannerPreset::seed000(), scans, 1.0)
 }
 
+/// The `i`-th index of a walk forth and back over `n` waypoints (0, 1, …, n−1, n−2, …, 1, 0, …):
+/// a publisher replaying a short path this way never jumps, as a real robot never does (a jump
+/// from the last waypoint to the first would be rejected `implausible_pose`).
+pub fn ping_pong(i: usize, n: usize) -> usize {
+    if n < 2 {
+        return 0;
+    }
+    let k = i % (2 * n - 2);
+    if k < n {
+        k
+    } else {
+        2 * n - 2 - k
+    }
+}
+
 /// A test size from the environment variable `var` (long variants), `default` otherwise.
 pub fn env_count(var: &str, default: usize) -> usize {
     std::env::var(var)

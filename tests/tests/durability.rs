@@ -22,7 +22,7 @@ use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
-use rangegp_tests::{env_count, unique_id, world, Harness, WAIT};
+use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, WAIT};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -57,7 +57,7 @@ fn child_publisher() -> Result<()> {
     let mut w = world(8, 8);
     let scans: Vec<GeneratedScan> = (0..8).map(|i| w.scan(i, 0)).collect();
     for i in 0.. {
-        let scan = &scans[i % scans.len()];
+        let scan = &scans[ping_pong(i, scans.len())];
         let sequence = publisher.publish(
             ScanHeader {
                 stamp_ns: now_ns(),
@@ -163,7 +163,7 @@ impl Replay {
             max_future_ns: u64::MAX,
         };
         for r in &history[from..] {
-            let scan = &self.scans[(r.sequence as usize - 1) % self.scans.len()];
+            let scan = &self.scans[ping_pong(r.sequence as usize - 1, self.scans.len())];
             let header = ScanHeader {
                 publisher_id: r.publisher_id,
                 sequence: r.sequence,
@@ -173,9 +173,8 @@ impl Replay {
             };
             let input = validate(&header, &scan.points, &limits, 0).map_err(|e| anyhow::anyhow!("{e:?}"))?;
             let map = LocalRangeMap::fit(&input, &self.config.map_params())?;
-            self.world.insert(&input, &map)?;
-            let s = map.sensor_position();
-            self.world.evict_beyond(s.x, s.y, self.config.aggregate.radius_m);
+            self.world
+                .insert_and_evict(&input, &map, self.config.aggregate.radius_m)?;
         }
         Ok(())
     }
@@ -295,7 +294,7 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
         let started = Instant::now();
         while started.elapsed() < run {
             let next = publisher.next_sequence();
-            let scan = &scans[(next as usize - 1) % scans.len()];
+            let scan = &scans[ping_pong(next as usize - 1, scans.len())];
             let stamp = now_ns();
             publisher.publish(
                 ScanHeader {

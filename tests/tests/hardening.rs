@@ -7,7 +7,7 @@
 use rangegp_client::scangen::now_ns;
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN};
-use rangegp_tests::{env_count, world, Harness, WAIT};
+use rangegp_tests::{env_count, ping_pong, world, Harness, WAIT};
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -170,7 +170,7 @@ fn a_storm_of_malformed_scans_changes_nothing_and_every_valid_scan_is_taken() ->
     let mut sent = 0u64;
     let started = Instant::now();
     for i in 0..n {
-        let scan = &valid[i as usize % valid.len()];
+        let scan = &valid[ping_pong(i as usize, valid.len())];
         let stamp = now_ns() & !1;
         let header = ScanHeader {
             stamp_ns: stamp,

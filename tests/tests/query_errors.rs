@@ -4,6 +4,7 @@ use rangegp_client::scangen::now_ns;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{ElevationReply, ElevationRequest, ErrorCode, Ray};
+use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_tests::{error_code, world, Harness};
 
 #[test]
@@ -56,12 +57,38 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
         assert_eq!(refused.code, ErrorCode::UnsupportedVersion, "{enc:?}");
     }
     // JSON in, JSON out: what a Python planner sends.
-    let body = br#"{"version":2,"points":[[1.0,2.0]]}"#.to_vec();
-    let reply = c.call_raw(&key, body, Encoding::Json)?.expect("json answer");
+    let body = format!(r#"{{"version":{PROTOCOL_VERSION},"points":[[1.0,2.0]]}}"#).into_bytes();
+    let reply = c
+        .call_raw(&key, body.clone(), Encoding::Json)?
+        .expect("json answer");
     let parsed: ElevationReply = serde_json::from_slice(&reply)?;
     assert_eq!(parsed.items.len(), 1);
+    // JSON labelled bincode (or not labelled): a hint, not "version 123".
+    let mislabelled = c
+        .call_raw(&key, body, Encoding::Bincode)?
+        .expect_err("mislabelled");
+    assert_eq!(mislabelled.code, ErrorCode::MalformedRequest, "{mislabelled:?}");
+    assert!(
+        mislabelled.message.contains("application/json"),
+        "{}",
+        mislabelled.message
+    );
+    // An error never echoes a whole hostile value.
+    let huge = format!(
+        r#"{{"version":{PROTOCOL_VERSION},"points":"{}"}}"#,
+        "x".repeat(1 << 20)
+    );
+    let refused = c
+        .call_raw(&key, huge.into_bytes(), Encoding::Json)?
+        .expect_err("a string for points");
+    assert_eq!(refused.code, ErrorCode::MalformedRequest);
+    assert!(
+        refused.message.len() < 1024,
+        "{} bytes of message",
+        refused.message.len()
+    );
     // The daemon counted every failure and still serves.
     let s = c.status()?;
-    assert_eq!(s.queries_failed, 1 + 3 + 4);
+    assert_eq!(s.queries_failed, 1 + 3 + 4 + 2);
     Ok(())
 }

@@ -1,7 +1,9 @@
-//! `rangegpd`: the rangegp daemon (`run`), its self-contained demo (`demo`), and its defaults.
+//! `rangegpd`: the rangegp daemon (`run`), its self-contained demo (`demo`), its defaults, and
+//! the deliberate reset of its checkpoints.
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
+use rangegp_service::checkpoint::Store;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_service::demo::{self, DemoOptions};
@@ -30,6 +32,13 @@ enum Command {
     Demo(DemoOptions),
     /// Print the default configuration as TOML.
     DefaultConfig,
+    /// Delete every checkpoint generation of the configured directory (stop the daemon first):
+    /// the one deliberate way to replace a mapped area with an empty map.
+    ResetCheckpoints {
+        /// TOML configuration naming `[checkpoint] dir`.
+        #[arg(long)]
+        config: PathBuf,
+    },
 }
 
 fn main() -> Result<()> {
@@ -67,6 +76,18 @@ fn main() -> Result<()> {
             demo::print_table(&summary, &opts.out);
         }
         Command::DefaultConfig => print!("{}", toml::to_string_pretty(&Config::default())?),
+        Command::ResetCheckpoints { config } => {
+            let config = Config::load(&config)?;
+            let dir = config
+                .checkpoint
+                .dir
+                .context("the configuration sets no [checkpoint] dir")?;
+            let removed = Store::open(&dir, config.checkpoint.keep)?.reset()?;
+            println!(
+                "removed {removed} checkpoint generation(s) from {}",
+                dir.display()
+            );
+        }
     }
     Ok(())
 }

@@ -5,6 +5,7 @@
 use super::{encode, identity, Checkpoint, Store};
 use crate::daemon::sleep_until;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::aggregate::Aggregate;
 use crate::priority::{lower_current_thread, Background};
 use crate::server::ServerState;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -43,6 +44,16 @@ impl Writer {
             return;
         };
         if self.last.as_ref().is_some_and(|w| Arc::ptr_eq(w, &world)) {
+            return;
+        }
+        // An empty map on disk is worth nothing and would replace one that was not empty:
+        // only a deliberate reset (`rangegpd reset-checkpoints`) clears the checkpoints.
+        if world.is_empty() {
+            state
+                .metrics
+                .checkpoints_empty_refused
+                .fetch_add(1, Ordering::Relaxed);
+            self.last = Some(world);
             return;
         }
         let _span = info_span!("checkpoint", inserts = world.inserts()).entered();

@@ -1,6 +1,9 @@
-//! Scan intake: the iceoryx2 subscriber thread, validation, and the queue to the fitter.
+//! Scan intake: the iceoryx2 subscriber thread, validation, sequence and pose bookkeeping, and
+//! the queue to the fitter.
 
+pub mod plausibility;
 pub mod queue;
+pub mod sequence;
 pub mod subscriber;
 pub mod validate;
 
@@ -17,5 +20,6 @@ pub struct Arrival {
     /// When the ingest thread received it (start of scan-to-queryable latency).
     pub received: Instant,
 }
+pub use plausibility::PoseLimits;
 pub use subscriber::{spawn_ingest, IngestError, IngestHandle};
-pub use validate::{RejectReason, SequenceTracker, ValidationLimits};
+pub use validate::{RejectReason, ValidationLimits};

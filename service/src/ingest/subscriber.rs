@@ -1,9 +1,12 @@
 //! The ingest thread: takes scans from the iceoryx2 service, validates a private copy, and hands
 //! accepted scans to the fitter. iceoryx2 has no async API, so this is a plain thread.
 
+use super::plausibility::{PoseGate, PoseLimits, PoseVerdict};
 use super::queue::LatestQueue;
-use super::validate::{check_header, validate, SequenceTracker, Source, ValidationLimits};
+use super::sequence::{SequenceCheck, SequenceTracker, Source};
+use super::validate::{check_header, validate, RejectReason, ValidationLimits};
 use super::Arrival;
+use crate::metrics::throttle::Throttle;
 use crate::metrics::Metrics;
 use iceoryx2::prelude::*;
 use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint};
@@ -14,7 +17,9 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 use tracing::{debug, info, info_span, warn};
 
-/// The ingest thread could not start.
+/// The ingest thread could not open its subscriber. Only [`IngestError::ServiceName`] and
+/// [`IngestError::Spawn`] stop the daemon's start; the others are retried with back-off while
+/// the daemon serves queries (another process may hold the slots or the service for a while).
 #[derive(Debug, Error)]
 pub enum IngestError {
     /// The service name is not a valid iceoryx2 service name.
@@ -47,6 +52,16 @@ pub enum IngestError {
     StartupLost,
 }
 
+impl IngestError {
+    /// Whether waiting can cure it (the node, the service or a subscriber slot may free up).
+    fn is_transient(&self) -> bool {
+        matches!(
+            self,
+            IngestError::Node(_) | IngestError::Service { .. } | IngestError::Subscriber(_)
+        )
+    }
+}
+
 /// Settings of the ingest thread.
 #[derive(Debug, Clone)]
 pub struct IngestSettings {
@@ -58,6 +73,12 @@ pub struct IngestSettings {
     pub poll_interval: Duration,
     /// Dead-node cleanup period.
     pub cleanup_interval: Duration,
+    /// A sequence jump beyond this many numbers restarts the source's bookkeeping.
+    pub sequence_restart_window: u64,
+    /// Plausible poses.
+    pub pose: PoseLimits,
+    /// Longest wait between two attempts to open the subscriber.
+    pub max_retry_interval: Duration,
 }
 
 /// A running ingest thread; stops when the shared shutdown flag is set.
@@ -75,8 +96,9 @@ impl IngestHandle {
     }
 }
 
-/// Starts the ingest thread and waits until its subscriber exists (so no scan published after
-/// this returns is missed).
+/// Starts the ingest thread and waits for its first attempt to subscribe: when it succeeded, no
+/// scan published after this returns is missed; when it failed for a cause that can pass (see
+/// [`IngestError`]), the thread keeps trying with back-off and the state shows in `status`.
 pub fn spawn_ingest(
     settings: IngestSettings,
     queue: Arc<LatestQueue<Arrival>>,
@@ -87,16 +109,8 @@ pub fn spawn_ingest(
     let thread = std::thread::Builder::new()
         .name("rangegp-ingest".into())
         .spawn(move || {
-            let setup = Intake::open(&settings);
-            let intake = match setup {
-                Ok(intake) => {
-                    let _ = ready_tx.send(Ok(()));
-                    intake
-                }
-                Err(e) => {
-                    let _ = ready_tx.send(Err(e));
-                    return;
-                }
+            let Some(intake) = open_with_retry(&settings, &metrics, &shutdown, ready_tx) else {
+                return;
             };
             intake.run(&settings, &queue, &metrics, &shutdown);
         })?;
@@ -110,11 +124,59 @@ pub fn spawn_ingest(
     }
 }
 
+/// Opens the subscriber, retrying transient failures with doubling waits (from 250 ms up to
+/// `settings.max_retry_interval`) until it succeeds or shutdown is requested. The first
+/// attempt's outcome goes to `ready` (a permanent failure as the error).
+fn open_with_retry(
+    settings: &IngestSettings,
+    metrics: &Metrics,
+    shutdown: &AtomicBool,
+    ready: mpsc::SyncSender<Result<(), IngestError>>,
+) -> Option<Intake> {
+    let mut ready = Some(ready);
+    let mut wait = Duration::from_millis(250);
+    loop {
+        match Intake::open(settings) {
+            Ok(intake) => {
+                metrics.set_ingest_state(None);
+                if let Some(r) = ready.take() {
+                    let _ = r.send(Ok(()));
+                }
+                return Some(intake);
+            }
+            Err(e) if e.is_transient() => {
+                warn!(error = %e, retry_in_ms = wait.as_millis() as u64, "cannot subscribe to scans; queries are still served");
+                metrics.set_ingest_state(Some(e.to_string()));
+                if let Some(r) = ready.take() {
+                    let _ = r.send(Ok(()));
+                }
+            }
+            Err(e) => {
+                if let Some(r) = ready.take() {
+                    let _ = r.send(Err(e));
+                }
+                return None;
+            }
+        }
+        crate::daemon::sleep_until(std::time::Instant::now() + wait, shutdown);
+        if shutdown.load(Ordering::Relaxed) {
+            return None;
+        }
+        wait = (wait * 2).min(settings.max_retry_interval);
+    }
+}
+
 struct Intake {
     node: Node<ipc::Service>,
     subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, [ScanPoint], ScanHeader>,
     sequences: SequenceTracker,
+    poses: PoseGate,
+    skipped_log: Throttle,
+    restart_log: Throttle,
 }
+
+/// At most one line per this interval for per-scan events.
+const LOG_INTERVAL: Duration = Duration::from_secs(5);
 
 impl Intake {
     fn open(settings: &IngestSettings) -> Result<Self, IngestError> {
@@ -141,7 +203,10 @@ impl Intake {
         Ok(Self {
             node,
             subscriber,
-            sequences: SequenceTracker::default(),
+            sequences: SequenceTracker::new(settings.sequence_restart_window),
+            poses: PoseGate::new(settings.pose),
+            skipped_log: Throttle::new(LOG_INTERVAL),
+            restart_log: Throttle::new(LOG_INTERVAL),
         })
     }
 
@@ -174,6 +239,7 @@ impl Intake {
                     )
                     .entered();
                     if let Err(reason) = check_header(&header, slice_len, &settings.limits, now_ns) {
+                        self.sequences.saw(source, header.sequence);
                         metrics.reject(reason);
                         debug!(reason = reason.as_str(), "scan rejected");
                         continue;
@@ -215,33 +281,70 @@ impl Intake {
             received,
             now_ns,
         } = arrived;
-        let checked = validate(&header, points, &settings.limits, now_ns).and_then(|scan| {
-            self.sequences
-                .check(source, scan.sequence)
-                .map(|gaps| (scan, gaps))
-        });
-        match checked {
-            Ok((scan, gaps)) => {
-                self.sequences.accept(source, scan.sequence);
-                metrics.count_source(scan.publisher_id, gaps);
-                if gaps > 0 {
-                    debug!(publisher = scan.publisher_id, missing = gaps, "sequence gap");
-                }
-                if let Some(old) = queue.push(Arrival { scan, received }) {
-                    metrics.skipped.fetch_add(1, Ordering::Relaxed);
-                    warn!(
-                        publisher = old.scan.publisher_id,
-                        sequence = old.scan.sequence,
-                        skipped_total = metrics.skipped.load(Ordering::Relaxed),
-                        "fitting behind: skipped an older scan"
+        let scan = match validate(&header, points, &settings.limits, now_ns) {
+            Ok(scan) => scan,
+            Err(reason) => return self.refuse(source, header.sequence, reason, metrics),
+        };
+        let sequence = match self.sequences.check(source, scan.sequence) {
+            Ok(check) => check,
+            Err(reason) => return self.refuse(source, scan.sequence, reason, metrics),
+        };
+        let position = scan.pose.translation.vector;
+        let pose = self.poses.check(scan.publisher_id, scan.stamp_ns, position);
+        self.poses
+            .record(scan.publisher_id, scan.stamp_ns, position, pose);
+        match pose {
+            PoseVerdict::Implausible => {
+                return self.refuse(source, scan.sequence, RejectReason::ImplausiblePose, metrics)
+            }
+            PoseVerdict::Relocated => {
+                metrics.relocations.fetch_add(1, Ordering::Relaxed);
+                info!(
+                    publisher = scan.publisher_id,
+                    x = position.x,
+                    y = position.y,
+                    "publisher relocated"
+                );
+            }
+            PoseVerdict::Plausible => {}
+        }
+        self.sequences.accept(source, scan.sequence);
+        let lost = match sequence {
+            SequenceCheck::Next { lost } => lost,
+            SequenceCheck::Restart => {
+                metrics.publisher_restarts.fetch_add(1, Ordering::Relaxed);
+                if let Some(n) = self.restart_log.hit(received) {
+                    info!(
+                        publisher = scan.publisher_id,
+                        sequence = scan.sequence,
+                        restarts = n,
+                        "sequence jumped: publisher restarted"
                     );
                 }
+                0
             }
-            Err(reason) => {
-                metrics.reject(reason);
-                debug!(reason = reason.as_str(), "scan rejected");
+        };
+        metrics.count_source(scan.publisher_id, lost);
+        if lost > 0 {
+            debug!(publisher = scan.publisher_id, lost, "scans lost in transport");
+        }
+        if queue.push(Arrival { scan, received }).is_some() {
+            metrics.skipped.fetch_add(1, Ordering::Relaxed);
+            if let Some(n) = self.skipped_log.hit(received) {
+                warn!(
+                    skipped = n,
+                    skipped_total = metrics.skipped.load(Ordering::Relaxed),
+                    "fitting behind: older scans skipped (newest wins)"
+                );
             }
         }
+    }
+
+    /// Counts a rejection; the scan's number arrived, so it is not counted as lost later.
+    fn refuse(&mut self, source: Source, sequence: u64, reason: RejectReason, metrics: &Metrics) {
+        self.sequences.saw(source, sequence);
+        metrics.reject(reason);
+        debug!(reason = reason.as_str(), "scan rejected");
     }
 }
 

@@ -5,7 +5,6 @@ use crate::map::local::{RayObservation, ScanInput};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID};
 use rangegp_proto::PROTOCOL_VERSION;
-use std::collections::HashMap;
 
 /// Why a scan was rejected; each is counted separately and reported by `status`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -30,7 +29,8 @@ pub enum RejectReason {
     NonUnitQuaternion,
     /// Max range or noise coefficient out of range.
     InvalidSensorModel,
-    /// Sequence number below the publisher's last accepted one (out of order or replayed late).
+    /// Sequence number below the source's last accepted one, within
+    /// `ingest.sequence_restart_window` (out of order or replayed late).
     StaleSequence,
     /// Sequence number equal to the publisher's last accepted one (sent twice).
     DuplicateSequence,
@@ -40,11 +40,14 @@ pub enum RejectReason {
     NoReturns,
     /// The GP could not be fitted (Cholesky failed after jitter).
     FitFailed,
+    /// The pose lies outside `ingest.map_bounds_m`, or jumped from the publisher's last
+    /// accepted pose faster than `ingest.max_speed_mps` allows (a localisation glitch).
+    ImplausiblePose,
 }
 
 impl RejectReason {
     /// Every reason, in status order.
-    pub const ALL: [RejectReason; 15] = [
+    pub const ALL: [RejectReason; 16] = [
         RejectReason::UnsupportedVersion,
         RejectReason::EmptyScan,
         RejectReason::TooManyPoints,
@@ -60,6 +63,7 @@ impl RejectReason {
         RejectReason::FutureTimestamp,
         RejectReason::NoReturns,
         RejectReason::FitFailed,
+        RejectReason::ImplausiblePose,
     ];
 
     /// Stable snake_case name (status replies, logs, docs/PROTOCOL.md).
@@ -80,6 +84,7 @@ impl RejectReason {
             RejectReason::FutureTimestamp => "future_timestamp",
             RejectReason::NoReturns => "no_returns",
             RejectReason::FitFailed => "fit_failed",
+            RejectReason::ImplausiblePose => "implausible_pose",
         }
     }
 }
@@ -187,46 +192,6 @@ pub fn validate(
         range_noise_per_m: h.range_noise_per_m,
         rays,
     })
-}
-
-/// Who sent a scan: the header's publisher id and the iceoryx2 port it came through. A driver
-/// that restarts keeps its id but gets a new port, so its sequence numbers may start again.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct Source {
-    /// `ScanHeader::publisher_id`.
-    pub publisher_id: u64,
-    /// iceoryx2's unique publisher-port id.
-    pub port: u128,
-}
-
-/// Per-source sequence bookkeeping: refuses replays, counts gaps. Bounded in size.
-#[derive(Debug, Default)]
-pub struct SequenceTracker {
-    last: HashMap<Source, u64>,
-}
-
-/// Sources remembered at most; beyond it the table is cleared (a restart of bookkeeping).
-const MAX_TRACKED_SOURCES: usize = 4096;
-
-impl SequenceTracker {
-    /// Checks `sequence` against the source's last accepted one without recording it; returns
-    /// the number of sequence numbers skipped since then.
-    pub fn check(&self, source: Source, sequence: u64) -> Result<u64, RejectReason> {
-        match self.last.get(&source) {
-            Some(&last) if sequence == last => Err(RejectReason::DuplicateSequence),
-            Some(&last) if sequence < last => Err(RejectReason::StaleSequence),
-            Some(&last) => Ok(sequence - last - 1),
-            None => Ok(0),
-        }
-    }
-
-    /// Records an accepted scan.
-    pub fn accept(&mut self, source: Source, sequence: u64) {
-        if self.last.len() >= MAX_TRACKED_SOURCES && !self.last.contains_key(&source) {
-            self.last.clear();
-        }
-        self.last.insert(source, sequence);
-    }
 }
 
 #[cfg(test)]
@@ -360,28 +325,6 @@ pub(crate) mod tests {
             })
             .collect();
         check(good_header(10), &none, RejectReason::NoReturns);
-    }
-
-    #[test]
-    fn sequences_refuse_replays_and_count_gaps() {
-        let mut t = SequenceTracker::default();
-        let a = Source {
-            publisher_id: 1,
-            port: 10,
-        };
-        assert_eq!(t.check(a, 5), Ok(0));
-        t.accept(a, 5);
-        assert_eq!(t.check(a, 5), Err(RejectReason::DuplicateSequence));
-        assert_eq!(t.check(a, 4), Err(RejectReason::StaleSequence));
-        assert_eq!(t.check(a, 8), Ok(2));
-        let other = Source {
-            publisher_id: 2,
-            port: 11,
-        };
-        assert_eq!(t.check(other, 0), Ok(0));
-        // The same driver restarted: same id, new port, sequences from 1 again.
-        let restarted = Source { port: 12, ..a };
-        assert_eq!(t.check(restarted, 1), Ok(0));
     }
 
     #[test]

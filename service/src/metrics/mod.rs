@@ -2,13 +2,14 @@
 
 pub mod latency;
 pub mod prometheus;
+pub mod throttle;
 
 use crate::ingest::validate::RejectReason;
 pub use latency::Latency;
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{QueryLatencies, RejectionCount};
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
 
@@ -23,8 +24,24 @@ pub struct Metrics {
     rejected: [AtomicU64; RejectReason::ALL.len()],
     /// Valid scans skipped because fitting fell behind.
     pub skipped: AtomicU64,
-    /// Missing sequence numbers, all publishers.
+    /// Scans lost in transport (sequence numbers that never arrived), all publishers.
     pub sequence_gaps: AtomicU64,
+    /// Sources whose sequence number jumped beyond `ingest.sequence_restart_window`.
+    pub publisher_restarts: AtomicU64,
+    /// Publishers followed to a new place after `ingest.pose_confirm_scans` agreeing scans.
+    pub relocations: AtomicU64,
+    /// Whether the ingest thread holds its iceoryx2 subscriber now.
+    pub ingest_connected: AtomicBool,
+    /// Failed attempts to open the scan service or its subscriber (retried with back-off).
+    pub ingest_retries: AtomicU64,
+    /// Why the last attempt failed (cleared once connected).
+    ingest_error: Mutex<Option<String>>,
+    /// Batch queries answered `overloaded` because they waited past `query.queue_deadline_ms`.
+    pub queries_expired: AtomicU64,
+    /// Worker replies dropped because too many were already being sent (a client not reading).
+    pub replies_dropped: AtomicU64,
+    /// Empty aggregates not written over a non-empty checkpoint.
+    pub checkpoints_empty_refused: AtomicU64,
     /// Valid scans and missing sequence numbers per publisher id (bounded, see [`MAX_PUBLISHERS`]).
     publishers: Mutex<BTreeMap<u64, PublisherCounts>>,
     /// Online hyperparameter updates applied.
@@ -70,6 +87,14 @@ impl Default for Metrics {
             rejected: std::array::from_fn(|_| AtomicU64::new(0)),
             skipped: AtomicU64::new(0),
             sequence_gaps: AtomicU64::new(0),
+            publisher_restarts: AtomicU64::new(0),
+            relocations: AtomicU64::new(0),
+            ingest_connected: AtomicBool::new(false),
+            ingest_retries: AtomicU64::new(0),
+            ingest_error: Mutex::new(None),
+            queries_expired: AtomicU64::new(0),
+            replies_dropped: AtomicU64::new(0),
+            checkpoints_empty_refused: AtomicU64::new(0),
             publishers: Mutex::new(BTreeMap::new()),
             hyper_updates: AtomicU64::new(0),
             jittered_tiles: AtomicU64::new(0),
@@ -99,14 +124,14 @@ pub const MAX_PUBLISHERS: usize = 64;
 pub struct PublisherCounts {
     /// Valid scans.
     pub scans: u64,
-    /// Sequence numbers skipped between them.
+    /// Scans lost in transport between them.
     pub gaps: u64,
 }
 
 impl Metrics {
-    /// Counts one valid scan of `publisher` and the sequence numbers it skipped.
+    /// Counts one valid scan of `publisher` and the scans of it lost in transport before it.
     pub fn count_source(&self, publisher: u64, gaps: u64) {
-        self.sequence_gaps.fetch_add(gaps, Relaxed);
+        add_saturating(&self.sequence_gaps, gaps);
         let mut table = self.publishers.lock().unwrap_or_else(PoisonError::into_inner);
         let key = if table.len() < MAX_PUBLISHERS || table.contains_key(&publisher) {
             publisher
@@ -114,8 +139,25 @@ impl Metrics {
             u64::MAX
         };
         let entry = table.entry(key).or_default();
-        entry.scans += 1;
-        entry.gaps += gaps;
+        entry.scans = entry.scans.saturating_add(1);
+        entry.gaps = entry.gaps.saturating_add(gaps);
+    }
+
+    /// Records whether the ingest thread is subscribed, and why not.
+    pub fn set_ingest_state(&self, error: Option<String>) {
+        self.ingest_connected.store(error.is_none(), Relaxed);
+        if error.is_some() {
+            self.ingest_retries.fetch_add(1, Relaxed);
+        }
+        *self.ingest_error.lock().unwrap_or_else(PoisonError::into_inner) = error;
+    }
+
+    /// Why the ingest thread is not subscribed (`None` when it is, or before its first try).
+    pub fn ingest_error(&self) -> Option<String> {
+        self.ingest_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     /// Per-publisher counts, by publisher id.
@@ -170,6 +212,21 @@ impl Metrics {
     /// Seconds since start.
     pub fn uptime_s(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
+    }
+}
+
+/// Adds `n` to a counter, stopping at `u64::MAX` instead of wrapping.
+pub fn add_saturating(counter: &AtomicU64, n: u64) {
+    let _ = counter.fetch_update(Relaxed, Relaxed, |v| Some(v.saturating_add(n)));
+}
+
+/// Gives freed heap memory back to the OS (glibc keeps it in its arenas otherwise), so that a
+/// burst of large requests does not stay in the resident set.
+pub fn return_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks glibc's own arenas; it takes no pointer from us.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 

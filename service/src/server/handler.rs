@@ -144,6 +144,12 @@ fn grid(req: &GridRequest, state: &ServerState) -> Result<GridReply, Failure> {
 }
 
 fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, Failure> {
+    if encoding == Encoding::Bincode && looks_like_json(payload) {
+        return fail(
+            ErrorCode::MalformedRequest,
+            "the payload is JSON but labelled bincode (or not labelled): set the encoding to application/json",
+        );
+    }
     let version = codec::peek_version(encoding, payload);
     if version.is_some_and(|v| v != PROTOCOL_VERSION) {
         return fail(
@@ -160,6 +166,13 @@ fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, 
             format!("cannot decode the request ({encoding:?}): {e}"),
         )
     })
+}
+
+/// Whether a payload is a JSON object or array (a bincode request starts with its version, a
+/// small varint, never with `{` or `[`).
+fn looks_like_json(payload: &[u8]) -> bool {
+    let first = payload.iter().find(|b| !b.is_ascii_whitespace());
+    matches!(first, Some(b'{' | b'[')) && serde_json::from_slice::<serde::de::IgnoredAny>(payload).is_ok()
 }
 
 fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failure> {
@@ -228,6 +241,13 @@ fn status(state: &ServerState) -> StatusReply {
         hyperparameter_updates: m.hyper_updates.load(Relaxed),
         jittered_tiles: m.jittered_tiles.load(Relaxed),
         sequence_gaps: m.sequence_gaps.load(Relaxed),
+        ingest: IngestInfo {
+            connected: m.ingest_connected.load(Relaxed),
+            error: m.ingest_error(),
+            retries: m.ingest_retries.load(Relaxed),
+            publisher_restarts: m.publisher_restarts.load(Relaxed),
+            relocations: m.relocations.load(Relaxed),
+        },
         window_len: snap.maps().len() as u32,
         window_capacity: state.window_capacity as u32,
         aggregate: AggregateInfo {
@@ -255,6 +275,8 @@ fn status(state: &ServerState) -> StatusReply {
         query_ms: m.query_latencies(),
         queries_ok: m.queries_ok.load(Relaxed),
         queries_failed: m.queries_failed.load(Relaxed),
+        queries_expired: m.queries_expired.load(Relaxed),
+        replies_dropped: m.replies_dropped.load(Relaxed),
         rss_mb: crate::metrics::rss_mb(),
     }
 }

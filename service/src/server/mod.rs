@@ -5,20 +5,24 @@
 //! `rangegp/<map>/echo` returns the request's bytes from the callback: the transport floor.
 
 pub mod handler;
+pub mod reply;
 
 use crate::gp::Kernel;
 use crate::map::MapSnapshot;
 use crate::metrics::Metrics;
 use arc_swap::ArcSwap;
 use handler::Endpoint;
-use rangegp_client::transport::{protocol_encoding, zenoh_encoding};
-use rangegp_proto::codec;
+use rangegp_client::transport::protocol_encoding;
+use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
 use rangegp_proto::keys::{MapKeys, QueryKind};
 use rangegp_proto::msg::{ErrorCode, ErrorReply};
 use rangegp_proto::PROTOCOL_VERSION;
+use reply::{Outcome, ReplySender};
+use std::sync::atomic::Ordering::Relaxed;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 use thiserror::Error;
 use tracing::{info, warn};
 use zenoh::query::Query;
@@ -47,6 +51,8 @@ pub struct ServerState {
     pub nugget_m2: f64,
     /// Eviction radius of the aggregate when it is enabled (for status).
     pub aggregate_radius_m: Option<f64>,
+    /// Longest wait of a batch query for a worker before it is answered `overloaded`.
+    pub queue_deadline: Duration,
 }
 
 /// The server could not start.
@@ -65,7 +71,8 @@ pub enum ServerError {
     Spawn(#[from] std::io::Error),
 }
 
-type Job = (Endpoint, Query);
+/// A query waiting for a worker, with when it was queued.
+type Job = (Endpoint, Query, Instant);
 
 /// Running queryables and workers; dropping it undeclares everything and joins the workers.
 pub struct QueryServer {
@@ -94,13 +101,14 @@ impl QueryServer {
     ) -> Result<Self, ServerError> {
         let (sender, receiver) = sync_channel::<Job>(queue_len);
         let receiver = Arc::new(Mutex::new(receiver));
+        let replies = ReplySender::new(Arc::clone(&state.metrics));
         let mut handles = Vec::with_capacity(workers);
         for i in 0..workers.max(1) {
-            let (rx, st) = (Arc::clone(&receiver), Arc::clone(&state));
+            let (rx, st, replies) = (Arc::clone(&receiver), Arc::clone(&state), replies.clone());
             handles.push(
                 std::thread::Builder::new()
                     .name(format!("rangegp-query-{i}"))
-                    .spawn(move || worker(&rx, &st))?,
+                    .spawn(move || worker(&rx, &st, &replies))?,
             );
         }
         let mut endpoints: Vec<(String, Endpoint)> = QueryKind::ALL
@@ -117,19 +125,18 @@ impl QueryServer {
                 .complete(true)
                 .callback(move |query| {
                     if inline(endpoint, &query) {
-                        return serve(endpoint, &query, &st);
+                        let (encoding, outcome) = serve(endpoint, &query, &st);
+                        return reply::put(&query, encoding, outcome);
                     }
-                    match tx.try_send((endpoint, query)) {
+                    match tx.try_send((endpoint, query, Instant::now())) {
                         Ok(()) => {}
-                        Err(TrySendError::Full((_, query))) | Err(TrySendError::Disconnected((_, query))) => {
-                            st.metrics
-                                .queries_failed
-                                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                            reply_error(
-                                &query,
-                                ErrorCode::Overloaded,
-                                "query queue full, retry later".into(),
-                            );
+                        Err(TrySendError::Full((_, query, _)))
+                        | Err(TrySendError::Disconnected((_, query, _))) => {
+                            st.metrics.queries_failed.fetch_add(1, Relaxed);
+                            let encoding = request_encoding(&query);
+                            let outcome =
+                                error_reply(encoding, ErrorCode::Overloaded, "query queue full, retry later");
+                            reply::put(&query, encoding, outcome);
                         }
                     }
                 })
@@ -194,12 +201,24 @@ impl Drop for QueryServer {
     }
 }
 
-fn worker(receiver: &Mutex<Receiver<Job>>, state: &ServerState) {
+fn worker(receiver: &Mutex<Receiver<Job>>, state: &ServerState, replies: &ReplySender) {
     crate::priority::lower_current_thread(crate::priority::Background::Batch);
     loop {
         let job = receiver.lock().unwrap_or_else(PoisonError::into_inner).recv();
-        let Ok((endpoint, query)) = job else { return };
-        serve(endpoint, &query, state);
+        let Ok((endpoint, query, queued)) = job else {
+            return;
+        };
+        let waited = queued.elapsed();
+        let (encoding, outcome) = if waited > state.queue_deadline {
+            state.metrics.queries_expired.fetch_add(1, Relaxed);
+            state.metrics.queries_failed.fetch_add(1, Relaxed);
+            let encoding = request_encoding(&query);
+            let message = format!("waited {} ms for a worker, retry later", waited.as_millis());
+            (encoding, error_reply(encoding, ErrorCode::Overloaded, &message))
+        } else {
+            serve(endpoint, &query, state)
+        };
+        replies.send(query, encoding, outcome);
     }
 }
 
@@ -217,56 +236,101 @@ fn inline(endpoint: Endpoint, query: &Query) -> bool {
         )
 }
 
-/// Answers one query and records its latency.
-fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) {
-    let started = std::time::Instant::now();
-    let encoding = query.encoding().map(protocol_encoding).unwrap_or_default();
-    let payload = query
-        .payload()
-        .map(|p| p.to_bytes().into_owned())
-        .unwrap_or_default();
-    match handler::answer(endpoint, encoding, &payload, state) {
+/// Requests or replies at least this large give their memory back to the OS once answered
+/// (glibc keeps freed arenas otherwise: a spike would stay in RSS).
+const TRIM_BYTES: usize = 8 << 20;
+
+/// Zenoh's limit on a reassembled request: the codec's limit and room for key and encoding.
+/// Larger requests are discarded fragment by fragment by Zenoh, before any copy.
+pub const MAX_REQUEST_BYTES: usize = MAX_DECODE_BYTES + (64 << 10);
+
+/// The encoding a query's label names (bincode when unlabelled).
+fn request_encoding(query: &Query) -> Encoding {
+    query.encoding().map(protocol_encoding).unwrap_or_default()
+}
+
+/// Answers one query (reading its payload in place, refusing it before any copy when it is
+/// over the limit) and records its latency; returns the reply to send.
+fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) -> (Encoding, Outcome) {
+    let started = Instant::now();
+    let encoding = request_encoding(query);
+    let size = query.payload().map_or(0, |p| p.len());
+    let answer = if size > MAX_DECODE_BYTES {
+        Err(handler::Failure {
+            code: ErrorCode::BatchTooLarge,
+            message: format!("request of {size} bytes exceeds the {MAX_DECODE_BYTES}-byte limit"),
+        })
+    } else {
+        let payload = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
+        handler::answer(endpoint, encoding, &payload, state)
+    };
+    let outcome = match answer {
         Ok(bytes) => {
-            state
-                .metrics
-                .queries_ok
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if let Err(e) = query
-                .reply(query.key_expr().clone(), bytes)
-                .encoding(zenoh_encoding(encoding))
-                .wait()
-            {
-                warn!(error = %e, "reply failed");
-            }
+            state.metrics.queries_ok.fetch_add(1, Relaxed);
+            Outcome::Answer(bytes)
         }
         Err(f) => {
-            state
-                .metrics
-                .queries_failed
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            reply_error(query, f.code, f.message);
+            state.metrics.queries_failed.fetch_add(1, Relaxed);
+            error_reply(encoding, f.code, &f.message)
         }
-    }
+    };
     let kind = match endpoint {
         Endpoint::Query(k) => Some(k),
         Endpoint::Status => None,
     };
     state.metrics.query(kind).record(started.elapsed());
+    let reply_size = match &outcome {
+        Outcome::Answer(b) | Outcome::Error(b) => b.len(),
+    };
+    if size.max(reply_size) >= TRIM_BYTES {
+        crate::metrics::return_freed_memory();
+    }
+    (encoding, outcome)
 }
 
-fn reply_error(query: &Query, code: ErrorCode, message: String) {
-    let encoding = query.encoding().map(protocol_encoding).unwrap_or_default();
+/// Longest error message sent, bytes: a message quoting a hostile value is cut here.
+pub const MAX_ERROR_MESSAGE_BYTES: usize = 512;
+
+/// An encoded [`ErrorReply`] with `message` cut to [`MAX_ERROR_MESSAGE_BYTES`].
+fn error_reply(encoding: Encoding, code: ErrorCode, message: &str) -> Outcome {
     let body = ErrorReply {
         version: PROTOCOL_VERSION,
         code,
-        message,
+        message: truncate(message, MAX_ERROR_MESSAGE_BYTES),
     };
     match codec::encode(encoding, &body) {
-        Ok(bytes) => {
-            if let Err(e) = query.reply_err(bytes).encoding(zenoh_encoding(encoding)).wait() {
-                warn!(error = %e, "error reply failed");
-            }
+        Ok(bytes) => Outcome::Error(bytes),
+        Err(e) => {
+            warn!(error = %e, "cannot encode an error reply");
+            Outcome::Error(Vec::new())
         }
-        Err(e) => warn!(error = %e, "cannot encode an error reply"),
+    }
+}
+
+/// `text` cut at a character boundary to at most `max` bytes, saying how long it was.
+fn truncate(text: &str, max: usize) -> String {
+    if text.len() <= max {
+        return text.to_owned();
+    }
+    let mut end = max;
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!("{}… ({} bytes in all)", &text[..end], text.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn long_messages_are_cut_at_a_character_boundary() {
+        assert_eq!(truncate("short", 10), "short");
+        let long = "é".repeat(400);
+        let cut = truncate(&long, 11);
+        assert!(
+            cut.starts_with(&"é".repeat(5)) && cut.ends_with("(800 bytes in all)"),
+            "{cut}"
+        );
     }
 }

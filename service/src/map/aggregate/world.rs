@@ -168,18 +168,48 @@ impl WorldAggregate {
         self.refits
     }
 
+    /// Folds a scan in, then evicts the tiles beyond `radius_m` of its sensor, but only when the
+    /// map held a tile within that radius before the insert. A scan far from everything mapped
+    /// (a pose glitch, or the first scan of a relocalised robot) adds its tiles and evicts
+    /// nothing, so no single scan can empty the map. Returns how many tiles were evicted.
+    pub fn insert_and_evict(
+        &mut self,
+        scan: &ScanInput,
+        local: &LocalRangeMap,
+        radius_m: f64,
+    ) -> Result<usize, AggregateError> {
+        let s = local.sensor_position();
+        let connected = self.tiles.is_empty()
+            || self
+                .tiles
+                .keys()
+                .any(|&t| self.tile_distance(t, s.x, s.y) <= radius_m);
+        self.insert(scan, local)?;
+        Ok(if connected {
+            self.evict_beyond(s.x, s.y, radius_m)
+        } else {
+            0
+        })
+    }
+
+    /// Distance from tile `t`'s centre to map (x, y), metres.
+    fn tile_distance(&self, (ti, tj): (i32, i32), x: f64, y: f64) -> f64 {
+        let side = self.params.tile_cells as f64 * self.params.cell_m;
+        ((ti as f64 + 0.5) * side - x).hypot((tj as f64 + 0.5) * side - y)
+    }
+
     /// Drops the tiles whose centre lies farther than `radius_m` from map (x, y), with the
     /// cells they own, and returns how many tiles went. Neighbours keep their fits (their
     /// margins may have trained on dropped cells) until a scan touches them again.
     pub fn evict_beyond(&mut self, x: f64, y: f64, radius_m: f64) -> usize {
-        let side = self.params.tile_cells as f64 * self.params.cell_m;
-        let far = |&(ti, tj): &(i32, i32)| {
-            let (cx, cy) = ((ti as f64 + 0.5) * side, (tj as f64 + 0.5) * side);
-            (cx - x).hypot(cy - y) > radius_m
-        };
         // Every cell's own tile is fitted (its grown box holds the cell), so the far tiles name
         // every cell to drop.
-        let gone: BTreeSet<(i32, i32)> = self.tiles.keys().copied().filter(far).collect();
+        let gone: BTreeSet<(i32, i32)> = self
+            .tiles
+            .keys()
+            .copied()
+            .filter(|&t| self.tile_distance(t, x, y) > radius_m)
+            .collect();
         if gone.is_empty() {
             return 0;
         }
@@ -448,6 +478,31 @@ mod tests {
         assert!(agg.cells().keys().all(|&(i, _)| (i as f64 + 0.5) * 0.25 > -5.0));
         assert_eq!(agg.elevation(22.0, 1.0), Some(near), "near tiles untouched");
         assert_eq!(agg.evict_beyond(20.0, 0.0, 20.0), 0, "idempotent");
+    }
+
+    #[test]
+    fn a_scan_far_from_everything_mapped_evicts_nothing() {
+        let terrain = Heightmap::flat(80.0, 0.05, 0.0);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        let insert = |agg: &mut WorldAggregate, x: f64| {
+            let pose = Isometry3::from_parts(Translation3::new(x, 0.0, 0.75), UnitQuaternion::identity());
+            let scan = scan_of(&terrain, pose);
+            let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
+            agg.insert_and_evict(&scan, &local, 20.0).expect("insert")
+        };
+        assert_eq!(insert(&mut agg, -25.0), 0);
+        let before = agg.elevation(-22.0, 1.0).expect("observed");
+        assert_eq!(insert(&mut agg, 20.0), 0, "45 m from every tile: nothing evicted");
+        assert_eq!(
+            agg.elevation(-22.0, 1.0),
+            Some(before),
+            "the mapped area survives one scan"
+        );
+        assert!(
+            insert(&mut agg, 21.0) > 0,
+            "a second scan there confirms the move"
+        );
+        assert!(agg.elevation(-22.0, 1.0).is_none());
     }
 
     #[test]

@@ -1,0 +1,186 @@
+//! Pose plausibility: a scan whose pose lies outside the map's bounds, or jumped from its
+//! publisher's last accepted pose faster than the robot can move, is a localisation glitch and
+//! would tear the map (the aggregate evicts around the newest sensor). A publisher that really
+//! was relocalised is followed once `confirm_scans` consecutive scans agree on the new place.
+
+use nalgebra::Vector3;
+use std::collections::HashMap;
+
+/// Limits of a plausible pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseLimits {
+    /// Largest |x|, |y| and |z| of a sensor position, metres.
+    pub bounds_m: f64,
+    /// Fastest plausible motion between two scans of one publisher, m/s.
+    pub max_speed_mps: f64,
+    /// Jump allowed on top of the speed limit (localisation noise, clock jitter), metres.
+    pub slack_m: f64,
+    /// Consecutive mutually plausible scans that confirm a relocalisation.
+    pub confirm_scans: u32,
+}
+
+/// What the gate decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseVerdict {
+    /// Plausible: accept.
+    Plausible,
+    /// The publisher was relocalised: `confirm_scans` scans agree on a new place; accept.
+    Relocated,
+    /// Out of bounds or an implausible jump: reject.
+    Implausible,
+}
+
+/// A position at a time.
+#[derive(Debug, Clone, Copy)]
+struct Fix {
+    stamp_ns: u64,
+    position: Vector3<f64>,
+}
+
+/// Where one publisher stands.
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    accepted: Fix,
+    /// Scans that disagree with `accepted` but agree with each other, and the newest of them.
+    candidate: Option<(Fix, u32)>,
+}
+
+/// Per-publisher pose bookkeeping, bounded in size.
+#[derive(Debug)]
+pub struct PoseGate {
+    limits: PoseLimits,
+    publishers: HashMap<u64, Track>,
+}
+
+/// Publishers remembered at most; beyond it the table is cleared.
+const MAX_TRACKED_PUBLISHERS: usize = 4096;
+
+impl PoseGate {
+    /// A gate with `limits`.
+    pub fn new(limits: PoseLimits) -> Self {
+        Self {
+            limits,
+            publishers: HashMap::new(),
+        }
+    }
+
+    /// Judges the pose of a scan of `publisher` without recording it.
+    pub fn check(&self, publisher: u64, stamp_ns: u64, position: Vector3<f64>) -> PoseVerdict {
+        if position.iter().any(|v| !(v.abs() <= self.limits.bounds_m)) {
+            return PoseVerdict::Implausible;
+        }
+        let Some(track) = self.publishers.get(&publisher) else {
+            return PoseVerdict::Plausible;
+        };
+        let here = Fix { stamp_ns, position };
+        if reachable(&self.limits, &track.accepted, &here) {
+            return PoseVerdict::Plausible;
+        }
+        match track.candidate {
+            Some((fix, n)) if reachable(&self.limits, &fix, &here) && n + 1 >= self.limits.confirm_scans => {
+                PoseVerdict::Relocated
+            }
+            _ => PoseVerdict::Implausible,
+        }
+    }
+
+    /// Records the verdict of [`PoseGate::check`] for this scan.
+    pub fn record(&mut self, publisher: u64, stamp_ns: u64, position: Vector3<f64>, verdict: PoseVerdict) {
+        if self.publishers.len() >= MAX_TRACKED_PUBLISHERS && !self.publishers.contains_key(&publisher) {
+            self.publishers.clear();
+        }
+        let here = Fix { stamp_ns, position };
+        let in_bounds = position.iter().all(|v| v.abs() <= self.limits.bounds_m);
+        match verdict {
+            PoseVerdict::Plausible | PoseVerdict::Relocated => {
+                self.publishers.insert(
+                    publisher,
+                    Track {
+                        accepted: here,
+                        candidate: None,
+                    },
+                );
+            }
+            PoseVerdict::Implausible if in_bounds => {
+                let limits = self.limits;
+                if let Some(track) = self.publishers.get_mut(&publisher) {
+                    let n = match track.candidate {
+                        Some((fix, n)) if reachable(&limits, &fix, &here) => n + 1,
+                        _ => 1,
+                    };
+                    track.candidate = Some((here, n));
+                }
+            }
+            PoseVerdict::Implausible => {}
+        }
+    }
+}
+
+/// Whether a robot within `limits` can get from `from` to `to` in the time between them.
+fn reachable(limits: &PoseLimits, from: &Fix, to: &Fix) -> bool {
+    let dt = to.stamp_ns.abs_diff(from.stamp_ns) as f64 * 1e-9;
+    (to.position - from.position).norm() <= limits.max_speed_mps * dt + limits.slack_m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const S: u64 = 1_000_000_000;
+
+    fn gate() -> PoseGate {
+        PoseGate::new(PoseLimits {
+            bounds_m: 1e5,
+            max_speed_mps: 10.0,
+            slack_m: 1.0,
+            confirm_scans: 3,
+        })
+    }
+
+    fn step(g: &mut PoseGate, id: u64, t: u64, x: f64) -> PoseVerdict {
+        let p = Vector3::new(x, 0.0, 0.5);
+        let v = g.check(id, t, p);
+        g.record(id, t, p, v);
+        v
+    }
+
+    #[test]
+    fn a_glitch_is_refused_and_the_track_goes_on() {
+        let mut g = gate();
+        assert_eq!(step(&mut g, 1, 0, 0.0), PoseVerdict::Plausible);
+        assert_eq!(
+            step(&mut g, 1, S / 10, 1.5),
+            PoseVerdict::Plausible,
+            "1.5 m in 0.1 s: slack"
+        );
+        assert_eq!(step(&mut g, 1, S / 5, 50.0), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, 3 * S / 10, 2.0), PoseVerdict::Plausible);
+        assert_eq!(step(&mut g, 2, 0, 1e6), PoseVerdict::Implausible, "out of bounds");
+        assert_eq!(
+            step(&mut g, 2, S, 1e6),
+            PoseVerdict::Implausible,
+            "never confirmed"
+        );
+        assert_eq!(step(&mut g, 2, 2 * S, 1e6), PoseVerdict::Implausible);
+        assert_eq!(
+            step(&mut g, 1, 100 * S, 900.0),
+            PoseVerdict::Plausible,
+            "far, but time passed"
+        );
+    }
+
+    #[test]
+    fn a_relocalisation_is_followed_after_the_confirming_scans() {
+        let mut g = gate();
+        step(&mut g, 1, 0, 0.0);
+        assert_eq!(step(&mut g, 1, S / 10, 200.0), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, S / 5, 200.5), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, 3 * S / 10, 201.0), PoseVerdict::Relocated);
+        assert_eq!(step(&mut g, 1, 4 * S / 10, 201.5), PoseVerdict::Plausible);
+        // Glitches that disagree with each other never confirm anything.
+        assert_eq!(step(&mut g, 1, 5 * S / 10, -500.0), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, 6 * S / 10, 800.0), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, 7 * S / 10, -300.0), PoseVerdict::Implausible);
+        assert_eq!(step(&mut g, 1, 8 * S / 10, 202.5), PoseVerdict::Plausible);
+    }
+}

@@ -1,0 +1,96 @@
+//! Sending a worker's reply without letting one client stall the workers.
+//!
+//! Zenoh sends a reply with the congestion control of the query, and a query's default is
+//! `Block`: when a client stops reading, `reply().wait()` blocks until Zenoh closes that
+//! transport (5 s by default). A worker that sent the reply itself would be blocked with it, and
+//! every other client's batch would wait behind. So each worker reply is sent from a thread of
+//! its own; at most [`MAX_IN_FLIGHT`] are under way at once (memory and threads stay bounded),
+//! and a reply beyond that is dropped and counted (`replies_dropped`): its client, which is the
+//! one not reading, times out.
+
+use crate::metrics::Metrics;
+use rangegp_client::transport::zenoh_encoding;
+use rangegp_proto::codec::Encoding;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use tracing::{debug, warn};
+use zenoh::query::Query;
+use zenoh::Wait;
+
+/// Replies being sent at once, at most.
+pub const MAX_IN_FLIGHT: usize = 32;
+
+/// What a reply carries.
+#[derive(Debug)]
+pub enum Outcome {
+    /// An answer.
+    Answer(Vec<u8>),
+    /// An error reply (`reply_err`).
+    Error(Vec<u8>),
+}
+
+/// Sends replies from threads of their own, bounded in number.
+#[derive(Debug, Clone)]
+pub struct ReplySender {
+    in_flight: Arc<AtomicUsize>,
+    metrics: Arc<Metrics>,
+}
+
+impl ReplySender {
+    /// A sender counting into `metrics`.
+    pub fn new(metrics: Arc<Metrics>) -> Self {
+        Self {
+            in_flight: Arc::new(AtomicUsize::new(0)),
+            metrics,
+        }
+    }
+
+    /// Sends `outcome` for `query` in `encoding` without blocking the caller; drops it (counted)
+    /// when [`MAX_IN_FLIGHT`] replies are already under way or no thread can be started.
+    pub fn send(&self, query: Query, encoding: Encoding, outcome: Outcome) {
+        let taken = self
+            .in_flight
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < MAX_IN_FLIGHT).then_some(n + 1)
+            });
+        if taken.is_err() {
+            self.drop_reply("too many replies under way");
+            return;
+        }
+        let in_flight = Arc::clone(&self.in_flight);
+        let spawned = std::thread::Builder::new()
+            .name("rangegp-reply".into())
+            .spawn(move || {
+                put(&query, encoding, outcome);
+                in_flight.fetch_sub(1, Ordering::AcqRel);
+            });
+        if let Err(e) = spawned {
+            self.in_flight.fetch_sub(1, Ordering::AcqRel);
+            self.drop_reply(&e.to_string());
+        }
+    }
+
+    fn drop_reply(&self, why: &str) {
+        let n = self.metrics.replies_dropped.fetch_add(1, Ordering::Relaxed) + 1;
+        if n.is_power_of_two() {
+            warn!(
+                dropped = n,
+                why, "reply dropped: a client is not reading its replies"
+            );
+        }
+    }
+}
+
+/// Hands `outcome` to Zenoh (blocking while the client's transport is congested).
+pub fn put(query: &Query, encoding: Encoding, outcome: Outcome) {
+    let result = match outcome {
+        Outcome::Answer(bytes) => query
+            .reply(query.key_expr().clone(), bytes)
+            .encoding(zenoh_encoding(encoding))
+            .wait(),
+        Outcome::Error(bytes) => query.reply_err(bytes).encoding(zenoh_encoding(encoding)).wait(),
+    };
+    if let Err(e) = result {
+        debug!(error = %e, "reply not sent");
+    }
+}
