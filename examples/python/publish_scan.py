@@ -93,6 +93,12 @@ def main() -> int:
     ap.add_argument("--x", type=float, default=0.0)
     ap.add_argument("--y", type=float, default=0.0)
     ap.add_argument("--heading", type=float, default=0.0)
+    ap.add_argument(
+        "--linger",
+        type=float,
+        default=1.0,
+        help="seconds to keep the publisher after sending: its samples vanish with it",
+    )
     args = ap.parse_args()
 
     node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
@@ -128,6 +134,9 @@ def main() -> int:
         payload[i] = point
     sample.assume_init().send()
     print(f"published {len(points)} points as sequence {args.sequence} on {args.service}")
+    # A sample lives in its publisher's data segment: a one-shot publisher that exits at once can
+    # take it away before the daemon's next poll. A real driver runs on; this one waits a little.
+    time.sleep(args.linger)
     return 0
 
 

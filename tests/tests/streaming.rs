@@ -100,8 +100,10 @@ fn the_aggregate_forgets_what_lies_beyond_its_radius() -> anyhow::Result<()> {
     let [x0, y0, heading0] = w.path.waypoints[0];
     let ahead = [x0 + 3.0 * heading0.cos(), y0 + 3.0 * heading0.sin()];
     let mut seen_early = None;
+    // Stamped 0.2 s apart (15 m/s): as fast as a robot may plausibly move.
+    let t0 = now_ns() - 2_000_000_000;
     for i in 0..10 {
-        let scan = w.scan(i, now_ns());
+        let scan = w.scan(i, t0 + i as u64 * 200_000_000);
         publisher.publish(scan.header, &scan.points)?;
         h.wait_status("the scan in the aggregate", |s| {
             s.aggregate.inserts == i as u64 + 1

@@ -170,19 +170,22 @@ impl Store {
     }
 
     /// Generations on disk with their files, newest first: only files named and headed as this
-    /// store writes them.
+    /// store writes them (the ones it may number after and prune).
     pub fn generations(&self) -> Result<Vec<(u64, PathBuf)>, StoreError> {
+        let mut found = self.named()?;
+        found.retain(|(_, path)| has_magic(path));
+        Ok(found)
+    }
+
+    /// Files named as this store names them, newest first, whatever their content.
+    fn named(&self) -> Result<Vec<(u64, PathBuf)>, StoreError> {
         let entries = fs::read_dir(&self.dir).map_err(|source| StoreError::Dir {
             dir: self.dir.clone(),
             source,
         })?;
         let mut found: Vec<(u64, PathBuf)> = entries
             .flatten()
-            .filter_map(|e| {
-                let generation = parse_name(e.file_name().to_str()?)?;
-                let path = e.path();
-                has_magic(&path).then_some((generation, path))
-            })
+            .filter_map(|e| Some((parse_name(e.file_name().to_str()?)?, e.path())))
             .collect();
         found.sort_by_key(|g| std::cmp::Reverse(g.0));
         Ok(found)
@@ -243,15 +246,17 @@ impl Store {
         Ok(generations.len())
     }
 
-    /// Restores the newest generation that decodes, matches `identity` and `params`, and
-    /// refits; every generation passed over is returned with its reason (for the log).
+    /// Restores the newest file named as a generation that decodes, matches `identity` and
+    /// `params`, and refits; every file passed over is returned with its reason (for the log).
     pub fn restore(
         &self,
         identity: u64,
         params: &WorldParams,
     ) -> Result<(Option<Restored>, Vec<Rejected>), StoreError> {
         let mut rejected = Vec::new();
-        for (generation, path) in self.generations()? {
+        // Every file named as a generation is tried, so that one whose header was damaged is
+        // reported (bad magic) rather than passed over in silence.
+        for (generation, path) in self.named()? {
             let loaded = fs::read(&path)
                 .map_err(|e| RestoreError::Unreadable(e.kind()))
                 .and_then(|bytes| Ok(decode(&bytes, identity)?))
