@@ -420,9 +420,10 @@ impl Config {
         if i.sequence_restart_window == 0 || i.pose_confirm_scans == 0 || i.max_retry_interval_ms == 0 {
             return bad("ingest.sequence_restart_window, ingest.pose_confirm_scans and ingest.max_retry_interval_ms must be positive");
         }
-        if !positive(i.map_bounds_m)
-            || !positive(i.max_speed_mps)
-            || !(i.pose_slack_m.is_finite() && i.pose_slack_m >= 0.0)
+        if !(positive(i.map_bounds_m)
+            && positive(i.max_speed_mps)
+            && i.pose_slack_m.is_finite()
+            && i.pose_slack_m >= 0.0)
         {
             return bad("ingest.map_bounds_m and ingest.max_speed_mps must be positive, ingest.pose_slack_m finite and non-negative");
         }

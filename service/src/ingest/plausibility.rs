@@ -66,7 +66,7 @@ impl PoseGate {
 
     /// Judges the pose of a scan of `publisher` without recording it.
     pub fn check(&self, publisher: u64, stamp_ns: u64, position: Vector3<f64>) -> PoseVerdict {
-        if position.iter().any(|v| !(v.abs() <= self.limits.bounds_m)) {
+        if !self.in_bounds(&position) {
             return PoseVerdict::Implausible;
         }
         let Some(track) = self.publishers.get(&publisher) else {
@@ -90,7 +90,7 @@ impl PoseGate {
             self.publishers.clear();
         }
         let here = Fix { stamp_ns, position };
-        let in_bounds = position.iter().all(|v| v.abs() <= self.limits.bounds_m);
+        let in_bounds = self.in_bounds(&position);
         match verdict {
             PoseVerdict::Plausible | PoseVerdict::Relocated => {
                 self.publishers.insert(
@@ -113,6 +113,11 @@ impl PoseGate {
             }
             PoseVerdict::Implausible => {}
         }
+    }
+
+    /// Whether every coordinate lies within ±`bounds_m` (NaN never does).
+    fn in_bounds(&self, position: &Vector3<f64>) -> bool {
+        position.iter().all(|v| v.abs() <= self.limits.bounds_m)
     }
 }
 
