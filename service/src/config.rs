@@ -158,6 +158,9 @@ pub struct GpConfig {
     pub constant_range_m: f64,
     /// Online hyperparameter learning.
     pub online: OnlineConfig,
+    /// How each local expert's σ is tied to its own data: `leave_one_out` (default; scaled by
+    /// its standardised leave-one-out residuals, docs/EVALUATION.md "Calibration") or `none`.
+    pub variance_calibration: crate::map::tiles::VarianceCalibration,
 }
 
 /// Online hyperparameter learning (a thread of its own, never on the ingest path).
@@ -322,6 +325,7 @@ impl Default for GpConfig {
             sensor_height_m: 0.75,
             constant_range_m: 10.0,
             online: OnlineConfig::default(),
+            variance_calibration: crate::map::tiles::VarianceCalibration::LeaveOneOut,
         }
     }
 }
@@ -496,6 +500,7 @@ impl Config {
             },
             target: g.target,
             jitter: JitterPolicy::default(),
+            variance_calibration: g.variance_calibration,
         }
     }
 }

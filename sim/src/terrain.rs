@@ -92,6 +92,17 @@ impl Heightmap {
         Self::from_samples(p.size_m, p.resolution_m, z)
     }
 
+    /// A map of side `size_m` from row-major samples spaced `resolution` apart (panics when
+    /// their count is not ((size / resolution) + 1)²: caller's misuse).
+    pub fn from_grid(size_m: f64, resolution: f64, z: Vec<f64>) -> Self {
+        Self::from_samples(size_m, resolution, z.into_iter().map(|v| v as f32).collect())
+    }
+
+    /// The height samples, row-major (y rows of x samples).
+    pub fn samples(&self) -> &[f32] {
+        &self.z
+    }
+
     fn from_samples(size_m: f64, resolution: f64, z: Vec<f32>) -> Self {
         let n = (size_m / resolution).round() as usize + 1;
         assert_eq!(z.len(), n * n, "heightmap sample count");

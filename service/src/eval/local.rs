@@ -86,6 +86,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
         },
         target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
+        variance_calibration: crate::map::tiles::VarianceCalibration::None,
     }
 }
 

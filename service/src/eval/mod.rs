@@ -3,6 +3,7 @@
 
 pub mod aggregate;
 pub mod bars;
+pub mod calibration;
 pub mod local;
 pub mod overhang;
 pub mod progress;
@@ -28,6 +29,9 @@ pub enum Experiment {
     Overhang,
     /// All three.
     All,
+    /// σ calibration over the sim family of terrains × sensors × range bands (not in `all`):
+    /// writes calibration.json.
+    Calibration,
 }
 
 /// Command line of `rangegp-eval`.
@@ -115,6 +119,9 @@ pub struct OverhangSummary {
 
 /// Runs the selected experiments, prints their tables, writes summary.json.
 pub fn run(opts: &EvalOptions) -> Result<Summary> {
+    if opts.experiment == Experiment::Calibration {
+        return run_calibration_experiment(opts);
+    }
     let want = |e: Experiment| opts.experiment == e || opts.experiment == Experiment::All;
     eprintln!("terrain: 100 m × 100 m at 5 cm, seed {} …", opts.seed);
     let terrain = Heightmap::cratered(opts.seed, &CraterParams::default());
@@ -199,4 +206,35 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
         serde_json::to_string_pretty(&summary)?,
     )?;
     Ok(summary)
+}
+
+/// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
+fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
+    let report = calibration::run_calibration(&calibration::CalibrationOptions {
+        quick: opts.quick,
+        seed: opts.seed,
+    })?;
+    calibration::print_calibration(&report);
+    std::fs::create_dir_all(&opts.out)?;
+    std::fs::write(
+        opts.out.join("calibration.json"),
+        serde_json::to_string_pretty(&report)?,
+    )?;
+    if report.failures.is_empty() {
+        println!("\nEvery cell with n ≥ {} calibrated.", calibration::MIN_CELL_N);
+    } else {
+        println!("\nCells out of bounds:");
+        for f in &report.failures {
+            println!("  {f}");
+        }
+    }
+    println!("\n  written: {}", opts.out.join("calibration.json").display());
+    Ok(Summary {
+        quick: opts.quick,
+        seed: opts.seed,
+        local: None,
+        aggregate: None,
+        overhang: None,
+        failures: report.failures,
+    })
 }

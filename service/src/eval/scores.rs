@@ -34,6 +34,8 @@ pub struct Scores {
     pub coverage68: f64,
     /// Fraction of truths inside mean ± 1.96 sd.
     pub coverage95: f64,
+    /// Share of errors within 2.576 sd.
+    pub coverage99: f64,
     /// Area between the sparsification curve ordered by predicted sd and the oracle curve ordered
     /// by true error (mean absolute error, 50 steps; 0 is a perfect ranking), same units as the data.
     pub ause: f64,
@@ -126,6 +128,7 @@ impl Scores {
             nlpd,
             coverage68: within(1.0),
             coverage95: within(1.959_964),
+            coverage99: within(2.575_829),
             ause: ause(samples, &errs),
         })
     }

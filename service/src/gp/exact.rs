@@ -19,6 +19,8 @@ pub struct ExactGp<const D: usize = 3> {
     alpha: Vec<f64>,
     jitter: f64,
     log_marginal_likelihood: f64,
+    /// Factor on every latent variance (1 unless calibrated: [`ExactGp::set_variance_scale`]).
+    variance_scale: f64,
 }
 
 impl<const D: usize> ExactGp<D> {
@@ -66,6 +68,7 @@ impl<const D: usize> ExactGp<D> {
             inputs: points,
             jitter: jitter_used,
             log_marginal_likelihood,
+            variance_scale: 1.0,
         })
     }
 
@@ -108,11 +111,42 @@ impl<const D: usize> ExactGp<D> {
         self.kernel.values(x, &self.inputs, &mut v);
         let mean = v.iter().zip(&self.alpha).map(|(k, a)| k * a).sum();
         let explained = vector::forward_explained(&self.factor_packed, &mut v);
-        (mean, (self.kernel.diagonal(x) - explained).max(0.0))
+        (mean, self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0))
     }
 }
 
 impl<const D: usize> ExactGp<D> {
+    /// Standardised leave-one-out residuals zᵢ = αᵢ / √[(K + Σ)⁻¹]ᵢᵢ of the training targets
+    /// (Rasmussen & Williams 2006, eq. 5.12): each target predicted from all the others, divided
+    /// by that prediction's standard deviation. N(0, 1) when the model is right; their mean square
+    /// is the factor by which (K + Σ) must be scaled for the data to agree. One triangular inverse
+    /// of the factor (n³/3).
+    pub fn loo_residuals(&self) -> Vec<f64> {
+        let n = self.inputs.len();
+        let mut inverse = Mat::<f64>::identity(n, n);
+        solve_lower_triangular_in_place(self.unpacked_factor().as_ref(), inverse.as_mut(), Par::Seq);
+        // (K + Σ)⁻¹ = L⁻ᵀ L⁻¹, so its diagonal is the squared norm of each column of L⁻¹.
+        (0..n)
+            .map(|i| {
+                let column = &inverse.col_as_slice(i)[i..];
+                let diag: f64 = column.iter().map(|v| v * v).sum();
+                self.alpha[i] / diag.sqrt()
+            })
+            .collect()
+    }
+
+    /// Multiplies every latent variance by `scale` (positive, finite; panics otherwise): the
+    /// posterior of (K + Σ) scaled by `scale`, whose mean is unchanged.
+    pub fn set_variance_scale(&mut self, scale: f64) {
+        assert!(scale.is_finite() && scale > 0.0, "variance scale must be positive");
+        self.variance_scale = scale;
+    }
+
+    /// The factor on every latent variance.
+    pub fn variance_scale(&self) -> f64 {
+        self.variance_scale
+    }
+
     /// The packed factor as a square lower-triangular matrix (for faer's multi-column solves).
     fn unpacked_factor(&self) -> Mat<f64> {
         let n = self.inputs.len();
@@ -144,7 +178,7 @@ impl<const D: usize> ExactGp<D> {
             solve_lower_triangular_in_place(factor.as_ref(), kstar.as_mut(), Par::Seq);
             for (j, x) in block.iter().enumerate() {
                 let explained: f64 = (0..n).map(|i| kstar[(i, j)] * kstar[(i, j)]).sum();
-                vars.push((self.kernel.diagonal(x) - explained).max(0.0));
+                vars.push(self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0));
             }
         }
         (means, vars)
@@ -154,6 +188,36 @@ impl<const D: usize> ExactGp<D> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn loo_residuals_match_refitting_without_each_point() {
+        let k = Kernel::matern32(0.7, 0.9);
+        let xs: Vec<[f64; 3]> = (0..9).map(|i| [i as f64 * 0.4, (i as f64 * 0.7).sin(), 0.0]).collect();
+        let ys: Vec<f64> = xs.iter().map(|x| (2.0 * x[0]).sin() + 0.3 * x[1]).collect();
+        let noise = vec![0.01; xs.len()];
+        let gp = ExactGp::fit(k, xs.clone(), &ys, &noise, JitterPolicy::default()).expect("fit");
+        let z = gp.loo_residuals();
+        for i in 0..xs.len() {
+            let keep: Vec<usize> = (0..xs.len()).filter(|&j| j != i).collect();
+            let sub = ExactGp::fit(
+                k,
+                keep.iter().map(|&j| xs[j]).collect(),
+                &keep.iter().map(|&j| ys[j]).collect::<Vec<_>>(),
+                &vec![0.01; keep.len()],
+                JitterPolicy::default(),
+            )
+            .expect("fit without i");
+            let (m, v) = sub.mean_variance(&xs[i]);
+            let want = (ys[i] - m) / (v + noise[i]).sqrt();
+            assert!((z[i] - want).abs() < 1e-8, "point {i}: {} vs {want}", z[i]);
+        }
+        let mut scaled = gp.clone();
+        scaled.set_variance_scale(4.0);
+        let probe = [1.1, 0.2, 0.0];
+        let ((m1, v1), (m4, v4)) = (gp.mean_variance(&probe), scaled.mean_variance(&probe));
+        assert_eq!(m1, m4);
+        assert!((v4 - 4.0 * v1).abs() < 1e-15);
+    }
 
     #[test]
     fn one_point_gp_matches_the_closed_form() {

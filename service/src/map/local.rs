@@ -119,6 +119,8 @@ pub struct MapParams {
     pub target: RangeTarget,
     /// Cholesky jitter policy.
     pub jitter: JitterPolicy,
+    /// How each expert's variance is calibrated to its own data.
+    pub variance_calibration: crate::map::tiles::VarianceCalibration,
 }
 
 /// Why a scan could not be turned into a map.
@@ -195,13 +197,14 @@ impl LocalRangeMap {
         }
         let prior = prior_of(scan, params);
         let train = training_rays(scan, &prior, params, params.max_training_rays);
-        let gp = TiledGp::fit(
+        let mut gp = TiledGp::fit(
             &train,
             params.kernel,
             Embedding::new(prior, params.sphere_radius_m),
             params.tiling,
             params.jitter,
         )?;
+        gp.calibrate(params.variance_calibration);
         let angles: Vec<(f64, f64)> = scan.rays.iter().map(|r| (r.inclination, r.azimuth)).collect();
         Ok(Self {
             publisher_id: scan.publisher_id,

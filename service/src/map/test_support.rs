@@ -20,6 +20,7 @@ pub(crate) fn params() -> MapParams {
         },
         target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
+        variance_calibration: crate::map::tiles::VarianceCalibration::None,
     }
 }
 

@@ -126,6 +126,32 @@ fn smoothstep(t: f64) -> f64 {
     t * t * (3.0 - 2.0 * t)
 }
 
+/// How each local expert's predictive variance is tied to its own data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VarianceCalibration {
+    /// As the kernel says: the variance depends on where the rays are, never on what they say.
+    None,
+    /// Scaled by the mean square of the expert's standardised leave-one-out residuals (each
+    /// training ray predicted from the others), shrunk toward 1 by [`LOO_PRIOR_RAYS`]
+    /// pseudo-residuals: rough or misfit terrain widens σ, terrain the kernel explains keeps it.
+    #[default]
+    LeaveOneOut,
+}
+
+/// Pseudo-residuals of scale 1 added to every expert's leave-one-out evidence (a small tile
+/// cannot move its scale far).
+pub const LOO_PRIOR_RAYS: f64 = 8.0;
+/// Bounds of a leave-one-out variance scale.
+pub const LOO_SCALE_BOUNDS: (f64, f64) = (0.25, 1e6);
+
+/// The variance scale of an expert whose standardised leave-one-out residuals are `z`.
+pub fn loo_scale(z: &[f64]) -> f64 {
+    let squares: f64 = z.iter().map(|v| v * v).sum();
+    let scale = (squares + LOO_PRIOR_RAYS) / (z.len() as f64 + LOO_PRIOR_RAYS);
+    scale.clamp(LOO_SCALE_BOUNDS.0, LOO_SCALE_BOUNDS.1)
+}
+
 /// A scan's range residual modelled by a grid of exact-GP experts.
 #[derive(Debug, Clone)]
 pub struct TiledGp {
@@ -210,6 +236,18 @@ impl TiledGp {
             experts,
             embedding,
         })
+    }
+
+    /// Calibrates every expert's variance to its own data (in parallel); see
+    /// [`VarianceCalibration`].
+    pub fn calibrate(&mut self, policy: VarianceCalibration) {
+        if policy == VarianceCalibration::None {
+            return;
+        }
+        self.experts.par_iter_mut().flatten().for_each(|gp| {
+            let scale = loo_scale(&gp.loo_residuals());
+            gp.set_variance_scale(scale);
+        });
     }
 
     /// Experts (tiles with rays).

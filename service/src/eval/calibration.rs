@@ -1,0 +1,304 @@
+//! `rangegp-eval calibration`: is the σ a planner receives right on terrain, sensors and ranges
+//! the defaults were never tuned on?
+//!
+//! For every terrain of the sim family × sensor (seed 000, VLP-16, OS1-64), a robot drives a
+//! short path; each scan goes through the daemon's own code path with the default configuration
+//! (the wire message, validation, the local fit, the 16-map window, the world aggregate with its
+//! eviction), and elevation queries are answered as the daemon answers them
+//! ([`query::elevation`]). Ground points around the last pose are scored against the terrain's
+//! true height by range band (distance from the last sensor position) and by the source that
+//! answered (window or aggregate); points that no scan could see (occluded, or outside every
+//! field of view) form a band of their own, where a refusal is the right answer.
+
+use super::progress;
+use super::scores::{Sample, Scores};
+use crate::config::Config;
+use crate::ingest::validate::{validate, ValidationLimits};
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::{query, LocalRangeMap, Window};
+use anyhow::Result;
+use nalgebra::{Isometry3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use rangegp_client::scangen::to_message;
+use rangegp_proto::msg::Source;
+use rangegp_sim::family::FAMILY_SIZE_M;
+use rangegp_sim::{family, simulate_scan, Heightmap, Path, ScannerPreset, TerrainSpec};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// Range bands, metres from the last sensor position (the last is open-ended).
+pub const BANDS: [(f64, f64, &str); 5] = [
+    (0.0, 5.0, "0-5"),
+    (5.0, 10.0, "5-10"),
+    (10.0, 20.0, "10-20"),
+    (20.0, 40.0, "20-40"),
+    (40.0, f64::INFINITY, "40+"),
+];
+
+/// Name of the band of ground no scan saw.
+pub const OCCLUDED: &str = "occluded";
+
+/// Cells with at least this many answers must be calibrated.
+pub const MIN_CELL_N: usize = 500;
+/// Bounds of the 95 % coverage of a calibrated cell.
+pub const COV95: (f64, f64) = (0.92, 0.98);
+/// Bounds of the 68 % coverage of a calibrated cell.
+pub const COV68: (f64, f64) = (0.60, 0.76);
+
+/// Sizes of a run.
+#[derive(Debug, Clone, Copy)]
+pub struct CalibrationOptions {
+    /// Reduced sizes (CI).
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+}
+
+/// One cell of the calibration matrix.
+#[derive(Debug, Clone, Serialize)]
+pub struct Cell {
+    /// Terrain of the family.
+    pub terrain: String,
+    /// Sensor preset.
+    pub sensor: String,
+    /// Range band, or `occluded`.
+    pub band: String,
+    /// `window` or `aggregate`.
+    pub source: String,
+    /// Answers scored.
+    pub n: usize,
+    /// Points of the band this source did not answer (counted once, under `window`).
+    pub refused: usize,
+    /// RMSE of z, metres.
+    pub rmse: f64,
+    /// Median |error| of z, metres.
+    pub median_abs: f64,
+    /// Mean predicted σ, metres.
+    pub mean_sd: f64,
+    /// Share of errors within 1 σ.
+    pub cov68: f64,
+    /// Share within 1.96 σ.
+    pub cov95: f64,
+    /// Share within 2.576 σ.
+    pub cov99: f64,
+    /// Negative log predictive density.
+    pub nlpd: f64,
+    /// Area under the sparsification error curve, metres.
+    pub ause: f64,
+}
+
+/// What `calibration.json` holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibrationReport {
+    /// Quick (CI) or full sizes.
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+    /// Every terrain × sensor × band × source with answers.
+    pub cells: Vec<Cell>,
+    /// Cells with n ≥ [`MIN_CELL_N`] whose coverage is out of bounds, one line each.
+    pub failures: Vec<String>,
+}
+
+/// Answers gathered for one (band, source).
+#[derive(Default)]
+struct Bin {
+    samples: Vec<Sample>,
+    refused: usize,
+}
+
+/// Runs the matrix.
+pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
+    let terrains: Vec<TerrainSpec> = if opts.quick {
+        family()
+            .into_iter()
+            .filter(|t| ["craters", "fbm-h05-16deg", "boulders"].contains(&t.name.as_str()))
+            .collect()
+    } else {
+        family()
+    };
+    let sensors = [
+        ScannerPreset::seed000(),
+        ScannerPreset::vlp16(),
+        ScannerPreset::os1_64(1024),
+    ];
+    let mut cells = Vec::new();
+    for spec in &terrains {
+        eprintln!("calibration: terrain {} …", spec.name);
+        let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
+        for preset in &sensors {
+            let bins = run_one(&terrain, preset, opts)?;
+            for ((band, source), bin) in bins {
+                if let Some(s) = Scores::of(&bin.samples) {
+                    cells.push(Cell {
+                        terrain: spec.name.clone(),
+                        sensor: preset.name.to_owned(),
+                        band: band.to_owned(),
+                        source: source.to_owned(),
+                        n: s.count,
+                        refused: bin.refused,
+                        rmse: s.rmse,
+                        median_abs: s.median_abs,
+                        mean_sd: s.mean_sd,
+                        cov68: s.coverage68,
+                        cov95: s.coverage95,
+                        cov99: s.coverage99,
+                        nlpd: s.nlpd,
+                        ause: s.ause,
+                    });
+                }
+            }
+        }
+    }
+    let failures = cells
+        .iter()
+        .filter(|c| c.n >= MIN_CELL_N)
+        .filter(|c| !(COV95.0..=COV95.1).contains(&c.cov95) || !(COV68.0..=COV68.1).contains(&c.cov68))
+        .map(|c| {
+            format!(
+                "{} {} {} {}: n {}, cov68 {:.3} (want [{}, {}]), cov95 {:.3} (want [{}, {}])",
+                c.terrain, c.sensor, c.band, c.source, c.n, c.cov68, COV68.0, COV68.1, c.cov95, COV95.0, COV95.1
+            )
+        })
+        .collect();
+    Ok(CalibrationReport {
+        quick: opts.quick,
+        seed: opts.seed,
+        cells,
+        failures,
+    })
+}
+
+/// One terrain and sensor: drive, fit, query, score.
+fn run_one(
+    terrain: &Heightmap,
+    preset: &ScannerPreset,
+    opts: &CalibrationOptions,
+) -> Result<BTreeMap<(&'static str, &'static str), Bin>> {
+    let config = Config::default();
+    let params = config.map_params();
+    let scans = if opts.quick { 6 } else { 20 };
+    let path = Path::wander(opts.seed ^ 0xca1, terrain, scans, 1.0, 0.25);
+    let poses: Vec<Isometry3<f64>> = (0..scans)
+        .map(|i| path.pose(terrain, i, preset.mount_height_m))
+        .collect();
+    let bar = progress::bar(scans as u64, &format!("  {} scans", preset.name));
+    let messages: Vec<_> = poses
+        .par_iter()
+        .enumerate()
+        .map(|(i, pose)| {
+            let mut rng = Pcg64::seed_from_u64(opts.seed ^ ((i as u64) << 20) ^ 0x5ca);
+            let rays = simulate_scan(terrain, pose, preset, &mut rng);
+            let (mut header, points) = to_message(preset, pose, &rays, 1_000 + i as u64);
+            header.protocol_version = rangegp_proto::PROTOCOL_VERSION;
+            header.sequence = i as u64 + 1;
+            bar.inc(1);
+            (header, points)
+        })
+        .collect();
+    bar.finish_and_clear();
+    let limits = ValidationLimits {
+        max_points: config.ingest.max_points,
+        max_future_ns: u64::MAX,
+    };
+    let mut window = Window::new(config.window.capacity);
+    let mut world = WorldAggregate::new(WorldParams::default());
+    for (header, points) in &messages {
+        let input = validate(header, points, &limits, 0).map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
+        let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
+        world.insert_and_evict(&input, &map, config.aggregate.radius_m)?;
+        window.push(map);
+    }
+    let snapshot = window.snapshot().with_aggregate(Some(Arc::new(world)));
+
+    let last = poses[poses.len() - 1].translation.vector;
+    let per_band = if opts.quick { 400 } else { 2500 };
+    let mut rng = Pcg64::seed_from_u64(opts.seed ^ 0x7e57);
+    let mut bins: BTreeMap<(&'static str, &'static str), Bin> = BTreeMap::new();
+    for &(lo, hi, band) in &BANDS {
+        let hi = hi.min(preset.max_range_m);
+        if lo >= hi {
+            continue;
+        }
+        let points: Vec<[f64; 2]> = (0..per_band)
+            .map(|_| {
+                let r = rng.random_range(lo * lo..hi * hi).sqrt();
+                let a = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                [last.x + r * a.cos(), last.y + r * a.sin()]
+            })
+            .collect();
+        let answers: Vec<_> = points
+            .par_iter()
+            .map(|&[x, y]| {
+                let truth = terrain.height(x, y)?;
+                let seen = poses.iter().any(|p| visible(terrain, preset, p, [x, y, truth]));
+                Some((truth, seen, query::elevation(&snapshot, x, y)))
+            })
+            .collect();
+        for (truth, seen, item) in answers.into_iter().flatten() {
+            let band = if seen { band } else { OCCLUDED };
+            let source = match item.source {
+                Source::Aggregate => "aggregate",
+                _ => "window",
+            };
+            let bin = bins.entry((band, source)).or_default();
+            match (item.z_m, item.z_var_m2) {
+                (Some(z), Some(var)) => bin.samples.push(Sample {
+                    mean: z,
+                    sd: var.sqrt().max(1e-9),
+                    truth,
+                }),
+                _ => bin.refused += 1,
+            }
+        }
+    }
+    Ok(bins)
+}
+
+/// Whether the ground point `p` is seen from `pose`: inside the scanner's rings and columns, in
+/// range, and the first surface along the ray from the sensor is the point itself.
+fn visible(terrain: &Heightmap, preset: &ScannerPreset, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
+    let origin = pose.translation.vector;
+    let to = Vector3::new(p[0], p[1], p[2]) - origin;
+    let dist = to.norm();
+    if dist >= preset.max_range_m || dist < 1e-6 {
+        return false;
+    }
+    let dir = to / dist;
+    let local = pose.rotation.inverse() * dir;
+    let inclination = local.z.clamp(-1.0, 1.0).acos();
+    let azimuth = local.y.atan2(local.x);
+    let span = |v: &[f64]| {
+        let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+        (lo, hi)
+    };
+    let (inc_lo, inc_hi) = span(&preset.inclinations_rad);
+    let (az_lo, az_hi) = span(&preset.azimuths_rad);
+    let az_step = std::f64::consts::TAU / preset.azimuths_rad.len().max(1) as f64;
+    let in_rings = (inc_lo..=inc_hi).contains(&inclination);
+    let in_columns = (az_lo - az_step..=az_hi + az_step).contains(&azimuth);
+    if !in_rings || !in_columns {
+        return false;
+    }
+    terrain
+        .cast(origin, dir, dist + 0.5)
+        .is_some_and(|hit| hit >= dist - 0.05)
+}
+
+/// Prints the matrix as a table.
+pub fn print_calibration(report: &CalibrationReport) {
+    println!("\nσ calibration by terrain × sensor × band × source (n ≥ {MIN_CELL_N} must have cov95 in [{}, {}], cov68 in [{}, {}])", COV95.0, COV95.1, COV68.0, COV68.1);
+    println!(
+        "{:<16} {:<8} {:<9} {:<9} {:>6} {:>6} {:>9} {:>9} {:>9} {:>6} {:>6} {:>6} {:>8}",
+        "terrain", "sensor", "band", "source", "n", "refus", "rmse m", "med m", "mean σ", "c68", "c95", "c99", "nlpd"
+    );
+    for c in &report.cells {
+        println!(
+            "{:<16} {:<8} {:<9} {:<9} {:>6} {:>6} {:>9.4} {:>9.4} {:>9.4} {:>6.3} {:>6.3} {:>6.3} {:>8.2}",
+            c.terrain, c.sensor, c.band, c.source, c.n, c.refused, c.rmse, c.median_abs, c.mean_sd, c.cov68, c.cov95, c.cov99, c.nlpd
+        );
+    }
+}
