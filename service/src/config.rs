@@ -140,8 +140,10 @@ pub struct GpConfig {
     pub length_scale: f64,
     /// What the GP models along a ray: `range` (seed 000) or `inverse_range` (planes are linear).
     pub target: RangeTarget,
-    /// Footprints are capped at this range; the range-sphere radius, metres (seed 000: R_max = 10).
-    pub sphere_radius_m: f64,
+    /// Footprints are capped at this range, metres (seed 000: R_max = 10). Unset (the default):
+    /// each scan's own maximum range, so kernel distances stay ground distances out to the
+    /// sensor's reach (a 10 m cap made far rings look adjacent: σ at 20–40 m 3–10× too small).
+    pub sphere_radius_m: Option<f64>,
     /// Noise variance added to every training ray on top of the sensor model, m².
     pub nugget_m2: f64,
     /// Training rays per scan at most (even stride over the returned rays).
@@ -316,7 +318,7 @@ impl Default for GpConfig {
             kernel_variance: 5e-4,
             length_scale: 0.97,
             target: RangeTarget::Range,
-            sphere_radius_m: 10.0,
+            sphere_radius_m: None,
             nugget_m2: 1e-6,
             max_training_rays: 8_192,
             max_rays_per_tile: 128,
@@ -382,8 +384,13 @@ impl Config {
         MapKeys::new(&self.map_id).map_err(|e| ConfigError::Invalid(e.to_string()))?;
         let g = &self.gp;
         let positive = |v: f64| v.is_finite() && v > 0.0;
-        if !positive(g.kernel_variance) || !positive(g.length_scale) || !positive(g.sphere_radius_m) {
-            return bad("gp.kernel_variance, gp.length_scale and gp.sphere_radius_m must be positive");
+        if !positive(g.kernel_variance)
+            || !positive(g.length_scale)
+            || !g.sphere_radius_m.is_none_or(positive)
+        {
+            return bad(
+                "gp.kernel_variance, gp.length_scale and gp.sphere_radius_m (when set) must be positive",
+            );
         }
         if !(g.nugget_m2.is_finite() && g.nugget_m2 >= 0.0) {
             return bad("gp.nugget_m2 must be finite and non-negative");

@@ -1,5 +1,5 @@
 //! The bars a run must meet (docs/EVALUATION.md). Full mode checks the bars of the issue and of
-//! ../shared/design/EVALUATION.md; quick mode (CI) checks thresholds set about 25 % above what
+//! the seed-000 evaluation design (docs/EVALUATION.md "Bars"); quick mode (CI) checks thresholds set about 25 % above what
 //! the quick sizes measured when the full run met its bars, so a regression in map quality fails CI
 //! while the run stays deterministic (every scan, split and optimiser start is seeded).
 

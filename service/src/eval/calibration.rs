@@ -160,7 +160,17 @@ pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
         .map(|c| {
             format!(
                 "{} {} {} {}: n {}, cov68 {:.3} (want [{}, {}]), cov95 {:.3} (want [{}, {}])",
-                c.terrain, c.sensor, c.band, c.source, c.n, c.cov68, COV68.0, COV68.1, c.cov95, COV95.0, COV95.1
+                c.terrain,
+                c.sensor,
+                c.band,
+                c.source,
+                c.n,
+                c.cov68,
+                COV68.0,
+                COV68.1,
+                c.cov95,
+                COV95.0,
+                COV95.1
             )
         })
         .collect();
@@ -207,7 +217,8 @@ fn run_one(
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());
     for (header, points) in &messages {
-        let input = validate(header, points, &limits, 0).map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
+        let input = validate(header, points, &limits, 0)
+            .map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
         let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
         world.insert_and_evict(&input, &map, config.aggregate.radius_m)?;
         window.push(map);
@@ -272,7 +283,9 @@ fn visible(terrain: &Heightmap, preset: &ScannerPreset, pose: &Isometry3<f64>, p
     let inclination = local.z.clamp(-1.0, 1.0).acos();
     let azimuth = local.y.atan2(local.x);
     let span = |v: &[f64]| {
-        let (lo, hi) = v.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+        let (lo, hi) = v
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
         (lo, hi)
     };
     let (inc_lo, inc_hi) = span(&preset.inclinations_rad);
@@ -293,12 +306,36 @@ pub fn print_calibration(report: &CalibrationReport) {
     println!("\nσ calibration by terrain × sensor × band × source (n ≥ {MIN_CELL_N} must have cov95 in [{}, {}], cov68 in [{}, {}])", COV95.0, COV95.1, COV68.0, COV68.1);
     println!(
         "{:<16} {:<8} {:<9} {:<9} {:>6} {:>6} {:>9} {:>9} {:>9} {:>6} {:>6} {:>6} {:>8}",
-        "terrain", "sensor", "band", "source", "n", "refus", "rmse m", "med m", "mean σ", "c68", "c95", "c99", "nlpd"
+        "terrain",
+        "sensor",
+        "band",
+        "source",
+        "n",
+        "refus",
+        "rmse m",
+        "med m",
+        "mean σ",
+        "c68",
+        "c95",
+        "c99",
+        "nlpd"
     );
     for c in &report.cells {
         println!(
             "{:<16} {:<8} {:<9} {:<9} {:>6} {:>6} {:>9.4} {:>9.4} {:>9.4} {:>6.3} {:>6.3} {:>6.3} {:>8.2}",
-            c.terrain, c.sensor, c.band, c.source, c.n, c.refused, c.rmse, c.median_abs, c.mean_sd, c.cov68, c.cov95, c.cov99, c.nlpd
+            c.terrain,
+            c.sensor,
+            c.band,
+            c.source,
+            c.n,
+            c.refused,
+            c.rmse,
+            c.median_abs,
+            c.mean_sd,
+            c.cov68,
+            c.cov95,
+            c.cov99,
+            c.nlpd
         );
     }
 }

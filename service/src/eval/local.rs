@@ -73,7 +73,7 @@ pub struct LocalReport {
 fn sphere_params(kernel: Kernel) -> MapParams {
     MapParams {
         kernel,
-        sphere_radius_m: 10.0,
+        sphere_radius_m: Some(10.0),
         nugget_m2: NUGGET_M2,
         max_training_rays: usize::MAX,
         // One exact GP per scan: the paper's model (a scan keeps ~200 training rays).

@@ -98,7 +98,7 @@ fn params(kernel: Kernel, target: RangeTarget) -> MapParams {
     MapParams {
         kernel,
         prior: PriorKind::ConstantRange { range_m: RANGE_M },
-        sphere_radius_m: RANGE_M,
+        sphere_radius_m: Some(RANGE_M),
         nugget_m2: NUGGET_M2,
         target,
         ..Config::default().map_params()

@@ -111,7 +111,10 @@ impl<const D: usize> ExactGp<D> {
         self.kernel.values(x, &self.inputs, &mut v);
         let mean = v.iter().zip(&self.alpha).map(|(k, a)| k * a).sum();
         let explained = vector::forward_explained(&self.factor_packed, &mut v);
-        (mean, self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0))
+        (
+            mean,
+            self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0),
+        )
     }
 }
 
@@ -138,7 +141,10 @@ impl<const D: usize> ExactGp<D> {
     /// Multiplies every latent variance by `scale` (positive, finite; panics otherwise): the
     /// posterior of (K + Σ) scaled by `scale`, whose mean is unchanged.
     pub fn set_variance_scale(&mut self, scale: f64) {
-        assert!(scale.is_finite() && scale > 0.0, "variance scale must be positive");
+        assert!(
+            scale.is_finite() && scale > 0.0,
+            "variance scale must be positive"
+        );
         self.variance_scale = scale;
     }
 
@@ -192,7 +198,9 @@ mod tests {
     #[test]
     fn loo_residuals_match_refitting_without_each_point() {
         let k = Kernel::matern32(0.7, 0.9);
-        let xs: Vec<[f64; 3]> = (0..9).map(|i| [i as f64 * 0.4, (i as f64 * 0.7).sin(), 0.0]).collect();
+        let xs: Vec<[f64; 3]> = (0..9)
+            .map(|i| [i as f64 * 0.4, (i as f64 * 0.7).sin(), 0.0])
+            .collect();
         let ys: Vec<f64> = xs.iter().map(|x| (2.0 * x[0]).sin() + 0.3 * x[1]).collect();
         let noise = vec![0.01; xs.len()];
         let gp = ExactGp::fit(k, xs.clone(), &ys, &noise, JitterPolicy::default()).expect("fit");

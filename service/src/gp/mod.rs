@@ -1,6 +1,7 @@
 //! Gaussian-process machinery: kernels, the range sphere, Cholesky with jitter, exact GPs.
 //!
-//! Equations follow `../shared/design/MATH.md` (seed 000 §III-A, Rasmussen & Williams ch. 2).
+//! Equations follow seed 000 §III-A and Rasmussen & Williams ch. 2 (docs/ARCHITECTURE.md "The
+//! maps").
 //! Numerical failure is a `Result`; misuse (mismatched lengths) is a panic at the caller.
 
 pub mod cholesky;

@@ -105,8 +105,8 @@ pub struct MapParams {
     /// Kernel on the range sphere.
     pub kernel: Kernel,
     /// Kernel inputs are the prior's expected hit points, capped at this range (the range-sphere
-    /// radius under the constant-range prior), metres.
-    pub sphere_radius_m: f64,
+    /// radius under the constant-range prior), metres; `None`: the scan's maximum range.
+    pub sphere_radius_m: Option<f64>,
     /// Noise variance added to every training ray on top of the sensor model, m².
     pub nugget_m2: f64,
     /// At most this many rays of a scan train its experts (an even stride over the scan).
@@ -189,6 +189,11 @@ pub struct LocalRangeMap {
     gp: TiledGp,
 }
 
+/// Inclination step of the shadow test's range derivative, radians (0.1°).
+const SHADOW_PROBE_RAD: f64 = 1.745e-3;
+/// A crossing seen at a grazing angle below this fraction of flat ground's is a shadow edge.
+pub const SHADOW_GRAZING_FRACTION: f64 = 0.25;
+
 impl LocalRangeMap {
     /// Fits the range GP of `scan` (seed 000 eqs. 9–10 with a heteroscedastic diagonal).
     pub fn fit(scan: &ScanInput, params: &MapParams) -> Result<Self, FitError> {
@@ -200,7 +205,7 @@ impl LocalRangeMap {
         let mut gp = TiledGp::fit(
             &train,
             params.kernel,
-            Embedding::new(prior, params.sphere_radius_m),
+            Embedding::new(prior, params.sphere_radius_m.unwrap_or(scan.max_range_m)),
             params.tiling,
             params.jitter,
         )?;
@@ -352,8 +357,36 @@ impl LocalRangeMap {
     fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {
         let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
         let root = root::first_crossing(gap, 0.0, span, ELEVATION_SAMPLES)?;
-        let var = self.root_variance(gap, &Vector3::new(x, y, top - root.t), root)?;
+        let p = Vector3::new(x, y, top - root.t);
+        if self.in_shadow(&p) {
+            return None;
+        }
+        let var = self.root_variance(gap, &p, root)?;
         Some(HeightEstimate { z: top - root.t, var })
+    }
+
+    /// Whether the crossing at `p` is the edge of a shadow rather than ground this scan saw: the
+    /// rays there graze the predicted surface at less than [`SHADOW_GRAZING_FRACTION`] of the
+    /// angle flat ground would be seen at from the same distance. Behind a ridge the vertical
+    /// line's first crossing is where the rays start to pass over the ridge: the range jumps
+    /// there (the map smooths the jump into a steep ramp), and the crossing's height is the
+    /// shadow line, not the ground. Only under the flat-ground prior (it knows the sensor height).
+    fn in_shadow(&self, p: &Vector3<f64>) -> bool {
+        let Prior::FlatGround { height_m, .. } = self.prior else {
+            return false;
+        };
+        let Some((inc, az, dist)) = self.look_at(p) else {
+            return false;
+        };
+        // Inclination is measured from the sensor's zenith: a smaller one looks farther out.
+        let step = SHADOW_PROBE_RAD;
+        let rate = (self.mean_range(inc - step, az) - self.mean_range(inc + step, az)) / (2.0 * step);
+        if rate <= 0.0 {
+            return false;
+        }
+        let grazing = dist.atan2(rate);
+        let flat = (height_m / dist).clamp(-1.0, 1.0).asin();
+        grazing < SHADOW_GRAZING_FRACTION * flat
     }
 
     /// The part of the vertical line at (x, y) inside the observed field of view, as its top z
@@ -451,7 +484,10 @@ impl LocalRangeMap {
 
 /// The kernel-input map of `scan`'s local map (its prior's footprints).
 pub fn embedding_of(scan: &ScanInput, params: &MapParams) -> Embedding {
-    Embedding::new(prior_of(scan, params), params.sphere_radius_m)
+    Embedding::new(
+        prior_of(scan, params),
+        params.sphere_radius_m.unwrap_or(scan.max_range_m),
+    )
 }
 
 /// The prior mean a scan is fitted with.
@@ -581,6 +617,34 @@ mod tests {
         // Behind the sensor (the seed-000 scanner looks ±90° around its heading) and beyond 10 m.
         assert!(map.elevation(-3.0, -2.0).is_none());
         assert!(map.elevation(12.0, 8.0).is_none());
+    }
+
+    #[test]
+    fn ground_in_the_shadow_of_a_ridge_is_refused_or_covered() {
+        // Flat ground with a 40 cm ridge across the view at x ∈ [4, 4.3]: from 0.75 m up, the
+        // ground from the ridge to about 9 m is hidden.
+        let (size, res) = (40.0, 0.05);
+        let n = (size / res) as usize + 1;
+        let z: Vec<f64> = (0..n * n)
+            .map(|k| {
+                let x = (k % n) as f64 * res - size / 2.0;
+                if (4.0..=4.3).contains(&x) {
+                    0.4
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let terrain = Heightmap::from_grid(size, res, z);
+        let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let front = map.elevation(3.5, 0.3).expect("ground in front of the ridge");
+        assert!(front.z.abs() < 0.01, "{front:?}");
+        for x in [5.0, 5.5, 6.0, 6.5, 7.0, 7.5] {
+            if let Some(e) = map.elevation(x, 0.3) {
+                assert!(e.z.abs() <= 3.0 * e.var.sqrt(), "hidden ground at x = {x}: {e:?}");
+            }
+        }
     }
 
     #[test]

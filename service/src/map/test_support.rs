@@ -11,7 +11,7 @@ use rangegp_sim::{simulate_scan, Heightmap, ScannerPreset};
 pub(crate) fn params() -> MapParams {
     MapParams {
         kernel: Kernel::matern32(5e-4, 0.97),
-        sphere_radius_m: 10.0,
+        sphere_radius_m: Some(10.0),
         nugget_m2: 1e-6,
         max_training_rays: 2000,
         tiling: Tiling::default(),

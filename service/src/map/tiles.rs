@@ -370,6 +370,14 @@ impl TiledGp {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn loo_scale_follows_the_residuals_and_is_shrunk_for_small_tiles() {
+        assert!((loo_scale(&[1.0; 100]) - 1.0).abs() < 1e-12);
+        assert!((loo_scale(&[3.0; 92]) - (9.0 * 92.0 + 8.0) / 100.0).abs() < 1e-12);
+        assert!(loo_scale(&[3.0; 2]) < 3.0, "two rays cannot claim a scale of 9");
+        assert_eq!(loo_scale(&[0.0; 1000]), LOO_SCALE_BOUNDS.0);
+    }
     use crate::gp::sphere;
     use crate::map::prior::Prior;
     use nalgebra::{UnitQuaternion, Vector3};
