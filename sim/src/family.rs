@@ -3,7 +3,7 @@
 //! ramps with terraces. Each is seeded and large enough for a sensor's full range, so that map
 //! quality and σ calibration are judged on terrain the defaults were never tuned on.
 
-use crate::terrain::{CraterParams, Heightmap};
+use crate::terrain::{value_noise, CraterParams, Heightmap};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -146,29 +146,12 @@ fn fbm(rng: &mut Pcg64, n: usize, res: f64, hurst: f64) -> Vec<f64> {
     let mut wavelength = 64.0;
     while wavelength >= 2.0 * res {
         let amp = wavelength.powf(hurst);
-        let cells = ((n - 1) as f64 * res / wavelength).ceil() as usize + 2;
-        let lattice: Vec<f64> = (0..cells * cells).map(|_| rng.random_range(-1.0..1.0)).collect();
-        for j in 0..n {
-            let gy = j as f64 * res / wavelength;
-            let (jy, fy) = (gy.floor() as usize, smooth(gy.fract()));
-            for i in 0..n {
-                let gx = i as f64 * res / wavelength;
-                let (ix, fx) = (gx.floor() as usize, smooth(gx.fract()));
-                let at = |a: usize, b: usize| lattice[b * cells + a];
-                let v0 = at(ix, jy) * (1.0 - fx) + at(ix + 1, jy) * fx;
-                let v1 = at(ix, jy + 1) * (1.0 - fx) + at(ix + 1, jy + 1) * fx;
-                z[j * n + i] += amp * (v0 * (1.0 - fy) + v1 * fy);
-            }
-        }
+        value_noise(rng, n, res, wavelength, |k, v| z[k] += amp * v);
         wavelength /= 2.0;
     }
     let mean = z.iter().sum::<f64>() / z.len() as f64;
     z.iter_mut().for_each(|v| *v -= mean);
     z
-}
-
-fn smooth(t: f64) -> f64 {
-    t * t * (3.0 - 2.0 * t)
 }
 
 /// 95th percentile of the gradient magnitude (rise over run) of a grid, from central differences

@@ -232,22 +232,34 @@ fn stamp_crater(z: &mut [f32], n: usize, res: f64, half: f64, c: [f64; 2], d: f6
 fn fractal_roughness(rng: &mut Pcg64, n: usize, res: f64, amplitude: f64) -> Vec<f32> {
     let mut z = vec![0.0f32; n * n];
     for (wavelength, amp) in [(8.0, amplitude), (2.0, amplitude * 0.35), (0.5, amplitude * 0.1)] {
-        let cells = ((n - 1) as f64 * res / wavelength).ceil() as usize + 2;
-        let lattice: Vec<f64> = (0..cells * cells).map(|_| rng.random_range(-1.0..1.0)).collect();
-        for j in 0..n {
-            let gy = j as f64 * res / wavelength;
-            let (jy, fy) = (gy.floor() as usize, smooth(gy.fract()));
-            for i in 0..n {
-                let gx = i as f64 * res / wavelength;
-                let (ix, fx) = (gx.floor() as usize, smooth(gx.fract()));
-                let at = |a: usize, b: usize| lattice[b * cells + a];
-                let v0 = at(ix, jy) * (1.0 - fx) + at(ix + 1, jy) * fx;
-                let v1 = at(ix, jy + 1) * (1.0 - fx) + at(ix + 1, jy + 1) * fx;
-                z[j * n + i] += (amp * (v0 * (1.0 - fy) + v1 * fy)) as f32;
-            }
-        }
+        value_noise(rng, n, res, wavelength, |k, v| z[k] += (amp * v) as f32);
     }
     z
+}
+
+/// One octave of smooth value noise of `wavelength` on an `n` × `n` grid of spacing `res`:
+/// calls `add(k, v)` with v in [−1, 1] for every sample k, row-major.
+pub(crate) fn value_noise(
+    rng: &mut Pcg64,
+    n: usize,
+    res: f64,
+    wavelength: f64,
+    mut add: impl FnMut(usize, f64),
+) {
+    let cells = ((n - 1) as f64 * res / wavelength).ceil() as usize + 2;
+    let lattice: Vec<f64> = (0..cells * cells).map(|_| rng.random_range(-1.0..1.0)).collect();
+    for j in 0..n {
+        let gy = j as f64 * res / wavelength;
+        let (jy, fy) = (gy.floor() as usize, smooth(gy.fract()));
+        for i in 0..n {
+            let gx = i as f64 * res / wavelength;
+            let (ix, fx) = (gx.floor() as usize, smooth(gx.fract()));
+            let at = |a: usize, b: usize| lattice[b * cells + a];
+            let v0 = at(ix, jy) * (1.0 - fx) + at(ix + 1, jy) * fx;
+            let v1 = at(ix, jy + 1) * (1.0 - fx) + at(ix + 1, jy + 1) * fx;
+            add(j * n + i, v0 * (1.0 - fy) + v1 * fy);
+        }
+    }
 }
 
 fn smooth(t: f64) -> f64 {

@@ -12,6 +12,7 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         quick: true,
         seed: 0,
         out: out.clone(),
+        config: None,
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
     let pictures = [

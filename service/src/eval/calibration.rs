@@ -48,13 +48,52 @@ pub const COV95: (f64, f64) = (0.92, 0.98);
 /// Bounds of the 68 % coverage of a calibrated cell.
 pub const COV68: (f64, f64) = (0.60, 0.76);
 
-/// Sizes of a run.
-#[derive(Debug, Clone, Copy)]
+/// Regression guard of the quick matrix (CI) until every cell meets the bars: the share of
+/// window answers outside occluded ground within 1.96 σ, pooled over the matrix, at least this.
+/// Measured at 2026-11-23 (quick, seed 0): 0.913; before self-calibration: 0.497.
+pub const QUICK_MIN_POOLED_COV95: f64 = 0.88;
+/// The same answers' median NLPD over cells, at most this. Measured: −1.69; before: 1054.
+pub const QUICK_MAX_MEDIAN_NLPD: f64 = 0.0;
+
+/// The quick matrix's regressions against [`QUICK_MIN_POOLED_COV95`] and
+/// [`QUICK_MAX_MEDIAN_NLPD`], one line each (empty: none).
+pub fn quick_regressions(report: &CalibrationReport) -> Vec<String> {
+    let cells: Vec<&Cell> = report
+        .cells
+        .iter()
+        .filter(|c| c.source == "window" && c.band != OCCLUDED)
+        .collect();
+    let n: usize = cells.iter().map(|c| c.n).sum();
+    if n == 0 {
+        return vec!["no window answers to score".into()];
+    }
+    let pooled = cells.iter().map(|c| c.cov95 * c.n as f64).sum::<f64>() / n as f64;
+    let mut nlpd: Vec<f64> = cells.iter().map(|c| c.nlpd).collect();
+    nlpd.sort_by(f64::total_cmp);
+    let median = nlpd[nlpd.len() / 2];
+    let mut out = Vec::new();
+    if pooled < QUICK_MIN_POOLED_COV95 {
+        out.push(format!(
+            "pooled window cov95 {pooled:.3} < {QUICK_MIN_POOLED_COV95}"
+        ));
+    }
+    if median > QUICK_MAX_MEDIAN_NLPD {
+        out.push(format!(
+            "median window NLPD {median:.2} > {QUICK_MAX_MEDIAN_NLPD}"
+        ));
+    }
+    out
+}
+
+/// Sizes and settings of a run.
+#[derive(Debug, Clone)]
 pub struct CalibrationOptions {
     /// Reduced sizes (CI).
     pub quick: bool,
     /// World seed.
     pub seed: u64,
+    /// The daemon configuration whose map and aggregate settings are used.
+    pub config: Config,
 }
 
 /// One cell of the calibration matrix.
@@ -188,7 +227,7 @@ fn run_one(
     preset: &ScannerPreset,
     opts: &CalibrationOptions,
 ) -> Result<BTreeMap<(&'static str, &'static str), Bin>> {
-    let config = Config::default();
+    let config = &opts.config;
     let params = config.map_params();
     let scans = if opts.quick { 6 } else { 20 };
     let path = Path::wander(opts.seed ^ 0xca1, terrain, scans, 1.0, 0.25);

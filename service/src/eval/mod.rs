@@ -53,6 +53,10 @@ pub struct EvalOptions {
     /// Output folder for summary.json and the pictures.
     #[arg(long, default_value = "eval-out")]
     pub out: PathBuf,
+    /// Daemon configuration the calibration matrix runs with (default: the embedded defaults),
+    /// to compare settings on the same scenes.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
 }
 
 /// What `summary.json` holds.
@@ -210,9 +214,14 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
 
 /// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
 fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
+    let config = match &opts.config {
+        Some(path) => crate::config::Config::load(path)?,
+        None => crate::config::Config::default(),
+    };
     let report = calibration::run_calibration(&calibration::CalibrationOptions {
         quick: opts.quick,
         seed: opts.seed,
+        config,
     })?;
     calibration::print_calibration(&report);
     std::fs::create_dir_all(&opts.out)?;

@@ -1,0 +1,46 @@
+//! The σ calibration matrix in its quick form (docs/EVALUATION.md "Calibration"): three terrains
+//! of the sim family × three sensors through the daemon's code path. Every cell of the bar is not
+//! met yet (the full run lists them); until it is, CI guards against regression: the pooled 95 %
+//! coverage and the median NLPD of the window's answers must stay where self-calibration brought
+//! them (without it: 0.50 and 1054, which fail).
+
+use rangegp_service::config::Config;
+use rangegp_service::eval::calibration::{quick_regressions, run_calibration, CalibrationOptions, BANDS};
+
+#[test]
+fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
+    let report = run_calibration(&CalibrationOptions {
+        quick: true,
+        seed: 0,
+        config: Config::default(),
+    })?;
+    let json = serde_json::to_value(&report)?;
+    for key in [
+        "terrain", "sensor", "band", "source", "n", "rmse", "cov68", "cov95", "cov99", "nlpd",
+    ] {
+        anyhow::ensure!(
+            json["cells"]
+                .as_array()
+                .is_some_and(|c| !c.is_empty() && c.iter().all(|c| !c[key].is_null())),
+            "every cell has {key}"
+        );
+    }
+    anyhow::ensure!(json["failures"].is_array());
+    let bands: Vec<&str> = BANDS.iter().map(|b| b.2).collect();
+    for sensor in ["seed000", "vlp16", "os1-64"] {
+        anyhow::ensure!(
+            report
+                .cells
+                .iter()
+                .any(|c| c.sensor == sensor && bands.contains(&c.band.as_str())),
+            "{sensor} scored"
+        );
+    }
+    anyhow::ensure!(
+        report.cells.iter().any(|c| c.band == "occluded"),
+        "an occluded-ground cell"
+    );
+    let regressions = quick_regressions(&report);
+    anyhow::ensure!(regressions.is_empty(), "{regressions:?}");
+    Ok(())
+}
