@@ -17,6 +17,7 @@ use crate::metrics::prometheus::Exporter;
 use crate::metrics::Metrics;
 use crate::priority::{lower_current_thread, Background};
 use crate::server::{QueryServer, ServerError, ServerState, MAX_REQUEST_BYTES};
+use crate::sleep::sleep_until;
 use arc_swap::ArcSwap;
 use rangegp_client::transport::{zenoh_config, zenoh_encoding, TransportConfigError};
 use rangegp_proto::codec::{self, Encoding};
@@ -499,17 +500,6 @@ fn aggregate_loop(
             }
         }
         sleep_until(started + pace.min_interval, shutdown);
-    }
-}
-
-/// Sleeps until `until` or until `shutdown` is set, whichever comes first (checked every 50 ms).
-pub(crate) fn sleep_until(until: Instant, shutdown: &AtomicBool) {
-    while !shutdown.load(Ordering::Relaxed) && Instant::now() < until {
-        std::thread::sleep(
-            until
-                .saturating_duration_since(Instant::now())
-                .min(Duration::from_millis(50)),
-        );
     }
 }
 

@@ -23,3 +23,4 @@ pub mod metrics;
 pub use rangegp_client::plot;
 pub mod priority;
 pub mod server;
+mod sleep;

@@ -3,11 +3,11 @@
 //! queries never wait for the disk.
 
 use super::{encode, identity, Checkpoint, Store};
-use crate::daemon::sleep_until;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
 use crate::priority::{lower_current_thread, Background};
 use crate::server::ServerState;
+use crate::sleep::sleep_until;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;

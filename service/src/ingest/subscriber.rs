@@ -158,7 +158,7 @@ fn open_with_retry(
                 return None;
             }
         }
-        crate::daemon::sleep_until(std::time::Instant::now() + wait, shutdown);
+        crate::sleep::sleep_until(std::time::Instant::now() + wait, shutdown);
         if shutdown.load(Ordering::Relaxed) {
             return None;
         }
