@@ -67,6 +67,51 @@ fn a_grid_larger_than_64_kib_matches_point_queries_and_the_ground_truth() -> any
     Ok(())
 }
 
+/// A planner speaking JSON (Python) gets exactly the point answer at every cell centre: floats
+/// cross JSON without rounding (serde_json's `float_roundtrip`), so the centre it computes from
+/// the reply is the point the daemon evaluated.
+#[test]
+fn a_json_grid_equals_point_queries_at_every_cell_centre() -> anyhow::Result<()> {
+    let h = Harness::start(|c| {
+        c.aggregate.min_interval_ms = 0;
+        c.aggregate.queue_len = 8;
+    })?;
+    let mut publisher = h.publisher(6)?;
+    let mut w = world(9, 4);
+    for i in 0..4 {
+        let scan = w.scan(i, now_ns());
+        publisher.publish(scan.header, &scan.points)?;
+    }
+    // The maps stop changing: the grid and the point queries read the same snapshot.
+    h.wait_status("4 scans in window and aggregate", |s| {
+        s.scans_accepted == 4 && s.aggregate.inserts == 4
+    })?;
+    let json = rangegp_client::Client::builder(&h.config.map_id)
+        .connect([h.endpoint.clone()])
+        .encoding(Encoding::Json)
+        .timeout(rangegp_tests::WAIT)
+        .open()?;
+    // An origin and a resolution with long decimal expansions.
+    let rep = json.grid([0.1 / 3.0, -4.0 / 7.0], [9.1, 4.3], 0.07)?;
+    let cells = rep.cols as usize * rep.rows as usize;
+    let points: Vec<[f64; 2]> = (0..cells)
+        .map(|k| rep.centre(k as u32 % rep.cols, k as u32 / rep.cols))
+        .collect();
+    let items = json.elevation(&points)?;
+    let observed = items.iter().filter(|i| i.z_m.is_some()).count();
+    assert!(observed > cells / 10, "{observed} of {cells} cells observed");
+    for (k, item) in items.iter().enumerate() {
+        assert_eq!(
+            item.z_m.map(|z| z as f32),
+            rep.elevation_m[k],
+            "cell {k} at {:?}",
+            points[k]
+        );
+        assert_eq!(item.z_var_m2.map(|v| v as f32), rep.variance_m2[k], "cell {k}");
+    }
+    Ok(())
+}
+
 #[test]
 fn bad_and_oversized_boxes_are_refused_with_their_codes() -> anyhow::Result<()> {
     let h = Harness::start(|c| c.query.max_batch = 1000)?;
