@@ -428,8 +428,8 @@ impl Config {
         if i.max_points == 0 || i.queue_len == 0 {
             return bad("ingest.max_points and ingest.queue_len must be positive");
         }
-        if i.sequence_restart_window == 0 || i.pose_confirm_scans == 0 || i.max_retry_interval_ms == 0 {
-            return bad("ingest.sequence_restart_window, ingest.pose_confirm_scans and ingest.max_retry_interval_ms must be positive");
+        if i.sequence_restart_window == 0 || i.pose_confirm_scans < 2 || i.max_retry_interval_ms == 0 {
+            return bad("ingest.sequence_restart_window and ingest.max_retry_interval_ms must be positive, ingest.pose_confirm_scans at least 2");
         }
         if !(positive(i.map_bounds_m)
             && positive(i.max_speed_mps)

@@ -33,6 +33,7 @@ fn skipped_scans_are_logged_as_a_summary_not_one_line_each() -> Result<()> {
         .with(WarnCount(Arc::clone(&warnings)))
         .init();
     let h = Harness::start(|c| c.ingest.queue_len = 1)?;
+    let started = std::time::Instant::now();
     let mut publisher = h.publisher(2)?;
     let mut w = world(2, 8);
     let scans: Vec<GeneratedScan> = (0..8).map(|i| w.scan(i, 0)).collect();
@@ -53,6 +54,8 @@ fn skipped_scans_are_logged_as_a_summary_not_one_line_each() -> Result<()> {
         s.scans_accepted + s.scans_skipped == n
     })?;
     let lines = warnings.load(Ordering::Relaxed);
+    // One summary line per 5 s at most, the first at once.
+    let allowed = 1 + started.elapsed().as_secs() / 5;
     eprintln!("{} of {n} scans skipped, {lines} WARN lines", s.scans_skipped);
     assert!(
         s.scans_skipped >= 50,
@@ -60,8 +63,8 @@ fn skipped_scans_are_logged_as_a_summary_not_one_line_each() -> Result<()> {
         s.scans_skipped
     );
     assert!(
-        lines <= 3,
-        "{lines} WARN lines for {} skipped scans",
+        lines <= allowed,
+        "{lines} WARN lines for {} skipped scans (at most {allowed})",
         s.scans_skipped
     );
     Ok(())

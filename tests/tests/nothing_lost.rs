@@ -93,7 +93,9 @@ fn a_scan_at_a_far_pose_is_refused_and_every_mapped_point_survives_a_restart() -
         send(&publisher, 3, last, 9 + k, Some([1e6, 1e6]))?;
         send(&publisher, 4, last, 1 + k, Some([1e6, 1e6]))?;
     }
-    let s = h.wait_status("six scans refused", |s| s.scans_received == 14)?;
+    let s = h.wait_status("six scans refused", |s| {
+        s.scans_received == 14 && s.scans_rejected == 6
+    })?;
     assert_eq!(rejected(&s, "implausible_pose"), 6, "{:?}", s.rejections);
     assert_eq!(s.scans_accepted, 8);
     // The map the daemon wrote last is the good one.

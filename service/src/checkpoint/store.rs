@@ -195,12 +195,23 @@ impl Store {
     /// new file. On any failure the generations already on disk are untouched.
     pub fn write(&self, bytes: &[u8]) -> Result<PathBuf, StoreError> {
         let existing = self.generations()?;
-        let generation = match existing.first() {
+        let mut generation = match existing.first() {
             Some(&(newest, _)) => newest
                 .checked_add(1)
                 .ok_or(StoreError::GenerationsExhausted(newest))?,
             None => 1,
         };
+        // Never rename over a file this store does not count (a generation whose header was
+        // damaged, say): the next free number instead.
+        while self
+            .dir
+            .join(format!("{PREFIX}{generation:020}{SUFFIX}"))
+            .exists()
+        {
+            generation = generation
+                .checked_add(1)
+                .ok_or(StoreError::GenerationsExhausted(generation))?;
+        }
         let path = self.dir.join(format!("{PREFIX}{generation:020}{SUFFIX}"));
         let tmp = self.dir.join(format!(".{PREFIX}{generation:020}{SUFFIX}.tmp"));
         let staged = self
@@ -351,13 +362,23 @@ mod tests {
         fs::write(&stray, b"not ours").expect("stray file");
         let loose = dir.join("aggregate-7.ckpt");
         fs::write(&loose, encoded(9)).expect("a hand-named file");
+        let damaged = dir.join(format!("{PREFIX}{:020}{SUFFIX}", 3));
+        fs::write(&damaged, b"a generation whose header was damaged").expect("damaged file");
         for created in 3..6 {
             store
                 .write(&encoded(created))
                 .expect("write after the stray file");
         }
+        assert_eq!(
+            fs::read(&damaged).expect("kept"),
+            b"a generation whose header was damaged"
+        );
         let gens: Vec<u64> = store.generations().expect("list").iter().map(|g| g.0).collect();
-        assert_eq!(gens, vec![5, 4], "numbering goes on past the stray file");
+        assert_eq!(
+            gens,
+            vec![6, 5],
+            "numbering goes on past the stray and the damaged file"
+        );
         assert!(
             stray.exists() && loose.exists(),
             "files it did not write are left alone"

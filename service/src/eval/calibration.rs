@@ -61,7 +61,7 @@ pub fn quick_regressions(report: &CalibrationReport) -> Vec<String> {
     let cells: Vec<&Cell> = report
         .cells
         .iter()
-        .filter(|c| c.source == "window" && c.band != OCCLUDED)
+        .filter(|c| c.source == "window" && c.band != OCCLUDED && c.n > 0)
         .collect();
     let n: usize = cells.iter().map(|c| c.n).sum();
     if n == 0 {
@@ -129,6 +129,28 @@ pub struct Cell {
     pub ause: f64,
 }
 
+impl Cell {
+    /// A cell where every point was refused: no answer to score (metrics NaN, `null` in JSON).
+    fn refusals(terrain: &str, sensor: &str, band: &str, source: &str, refused: usize) -> Self {
+        Self {
+            terrain: terrain.to_owned(),
+            sensor: sensor.to_owned(),
+            band: band.to_owned(),
+            source: source.to_owned(),
+            n: 0,
+            refused,
+            rmse: f64::NAN,
+            median_abs: f64::NAN,
+            mean_sd: f64::NAN,
+            cov68: f64::NAN,
+            cov95: f64::NAN,
+            cov99: f64::NAN,
+            nlpd: f64::NAN,
+            ause: f64::NAN,
+        }
+    }
+}
+
 /// What `calibration.json` holds.
 #[derive(Debug, Clone, Serialize)]
 pub struct CalibrationReport {
@@ -171,7 +193,10 @@ pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
         for preset in &sensors {
             let bins = run_one(&terrain, preset, opts)?;
             for ((band, source), bin) in bins {
-                if let Some(s) = Scores::of(&bin.samples) {
+                if bin.samples.is_empty() {
+                    // Every point refused (right for occluded ground): a cell of refusals.
+                    cells.push(Cell::refusals(&spec.name, preset.name, band, source, bin.refused));
+                } else if let Some(s) = Scores::of(&bin.samples) {
                     cells.push(Cell {
                         terrain: spec.name.clone(),
                         sensor: preset.name.to_owned(),

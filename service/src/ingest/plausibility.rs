@@ -123,7 +123,9 @@ impl PoseGate {
 
 /// Whether a robot within `limits` can get from `from` to `to` in the time between them.
 fn reachable(limits: &PoseLimits, from: &Fix, to: &Fix) -> bool {
-    let dt = to.stamp_ns.abs_diff(from.stamp_ns) as f64 * 1e-9;
+    // A stamp older than the last accepted one earns no travel time: an old or replayed stamp
+    // cannot excuse a jump.
+    let dt = to.stamp_ns.saturating_sub(from.stamp_ns) as f64 * 1e-9;
     (to.position - from.position).norm() <= limits.max_speed_mps * dt + limits.slack_m
 }
 
@@ -171,6 +173,11 @@ mod tests {
             step(&mut g, 1, 100 * S, 900.0),
             PoseVerdict::Plausible,
             "far, but time passed"
+        );
+        assert_eq!(
+            step(&mut g, 1, 0, 950.0),
+            PoseVerdict::Implausible,
+            "an old stamp excuses nothing"
         );
     }
 

@@ -79,11 +79,15 @@ impl SequenceTracker {
         if self.sources.len() >= MAX_TRACKED_SOURCES && !self.sources.contains_key(&source) {
             self.sources.clear();
         }
+        let seen = match self.sources.get(&source) {
+            Some(t) if sequence.abs_diff(t.accepted) <= self.restart_window => t.seen.max(sequence),
+            _ => sequence,
+        };
         self.sources.insert(
             source,
             Track {
                 accepted: sequence,
-                seen: sequence,
+                seen,
             },
         );
     }
@@ -137,6 +141,13 @@ mod tests {
         assert_eq!(t.check(A, 6), Ok(SequenceCheck::Next { lost: 2 }));
         // A rejected scan does not move the accepted number: 2 is still after 1.
         assert_eq!(t.check(A, 2), Ok(SequenceCheck::Next { lost: 0 }));
+        // Accepting 2 does not forget that 3 arrived.
+        t.accept(A, 2);
+        assert_eq!(
+            t.check(A, 5),
+            Ok(SequenceCheck::Next { lost: 1 }),
+            "only 4 is lost"
+        );
     }
 
     #[test]

@@ -5,8 +5,10 @@
 //! transport (5 s by default). A worker that sent the reply itself would be blocked with it, and
 //! every other client's batch would wait behind. So each worker reply is sent from a thread of
 //! its own; at most [`MAX_IN_FLIGHT`] are under way at once (memory and threads stay bounded),
-//! and a reply beyond that is dropped and counted (`replies_dropped`): its client, which is the
-//! one not reading, times out.
+//! and a reply beyond that is dropped and counted (`replies_dropped`). The bound is shared: a
+//! client that stops reading holds a slot per reply until Zenoh closes its transport, so only one
+//! with that many batch queries outstanding at once can make other clients' replies drop (and
+//! they then time out); docs/OPERATIONS.md "Queries under load".
 
 use crate::metrics::Metrics;
 use rangegp_client::transport::zenoh_encoding;
@@ -17,8 +19,9 @@ use tracing::{debug, warn};
 use zenoh::query::Query;
 use zenoh::Wait;
 
-/// Replies being sent at once, at most.
-pub const MAX_IN_FLIGHT: usize = 32;
+/// Replies being sent at once, at most (each holds its bytes: a 65 536-cell grid is ~1 MB in
+/// bincode, ~3 MB in JSON).
+pub const MAX_IN_FLIGHT: usize = 128;
 
 /// What a reply carries.
 #[derive(Debug)]
@@ -57,15 +60,14 @@ impl ReplySender {
             self.drop_reply("too many replies under way");
             return;
         }
-        let in_flight = Arc::clone(&self.in_flight);
+        let slot = Slot(Arc::clone(&self.in_flight));
         let spawned = std::thread::Builder::new()
             .name("rangegp-reply".into())
             .spawn(move || {
+                let _slot = slot;
                 put(&query, encoding, outcome);
-                in_flight.fetch_sub(1, Ordering::AcqRel);
             });
         if let Err(e) = spawned {
-            self.in_flight.fetch_sub(1, Ordering::AcqRel);
             self.drop_reply(&e.to_string());
         }
     }
@@ -78,6 +80,16 @@ impl ReplySender {
                 why, "reply dropped: a client is not reading its replies"
             );
         }
+    }
+}
+
+/// One reply under way; its slot is given back when the sending thread ends, however it ends
+/// (a panic included), or when the thread could not be started.
+struct Slot(Arc<AtomicUsize>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
