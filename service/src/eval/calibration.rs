@@ -290,6 +290,7 @@ fn run_one(
     let snapshot = window.snapshot().with_aggregate(Some(Arc::new(world)));
 
     let last = poses[poses.len() - 1].translation.vector;
+    let coverage = Coverage::of(preset);
     let per_band = if opts.quick { 400 } else { 2500 };
     let mut rng = Pcg64::seed_from_u64(opts.seed ^ 0x7e57);
     let mut bins: BTreeMap<(&'static str, &'static str), Bin> = BTreeMap::new();
@@ -309,7 +310,7 @@ fn run_one(
             .par_iter()
             .map(|&[x, y]| {
                 let truth = terrain.height(x, y)?;
-                let seen = poses.iter().any(|p| visible(terrain, preset, p, [x, y, truth]));
+                let seen = poses.iter().any(|p| coverage.sees(terrain, p, [x, y, truth]));
                 Some((truth, seen, query::elevation(&snapshot, x, y)))
             })
             .collect();
@@ -333,36 +334,50 @@ fn run_one(
     Ok(bins)
 }
 
-/// Whether the ground point `p` is seen from `pose`: inside the scanner's rings and columns, in
-/// range, and the first surface along the ray from the sensor is the point itself.
-fn visible(terrain: &Heightmap, preset: &ScannerPreset, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
-    let origin = pose.translation.vector;
-    let to = Vector3::new(p[0], p[1], p[2]) - origin;
-    let dist = to.norm();
-    if dist >= preset.max_range_m || dist < 1e-6 {
-        return false;
+/// The angles a scanner covers in its own frame, for the visibility test.
+struct Coverage {
+    inclination: (f64, f64),
+    /// Azimuth span widened by one column step on each side.
+    azimuth: (f64, f64),
+    max_range_m: f64,
+}
+
+impl Coverage {
+    fn of(preset: &ScannerPreset) -> Self {
+        let span = |v: &[f64]| {
+            v.iter()
+                .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)))
+        };
+        let (az_lo, az_hi) = span(&preset.azimuths_rad);
+        let az_step = std::f64::consts::TAU / preset.azimuths_rad.len().max(1) as f64;
+        Self {
+            inclination: span(&preset.inclinations_rad),
+            azimuth: (az_lo - az_step, az_hi + az_step),
+            max_range_m: preset.max_range_m,
+        }
     }
-    let dir = to / dist;
-    let local = pose.rotation.inverse() * dir;
-    let inclination = local.z.clamp(-1.0, 1.0).acos();
-    let azimuth = local.y.atan2(local.x);
-    let span = |v: &[f64]| {
-        let (lo, hi) = v
-            .iter()
-            .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
-        (lo, hi)
-    };
-    let (inc_lo, inc_hi) = span(&preset.inclinations_rad);
-    let (az_lo, az_hi) = span(&preset.azimuths_rad);
-    let az_step = std::f64::consts::TAU / preset.azimuths_rad.len().max(1) as f64;
-    let in_rings = (inc_lo..=inc_hi).contains(&inclination);
-    let in_columns = (az_lo - az_step..=az_hi + az_step).contains(&azimuth);
-    if !in_rings || !in_columns {
-        return false;
+
+    /// Whether the ground point `p` is seen from `pose`: inside the scanner's rings and columns,
+    /// in range, and the first surface along the ray from the sensor is the point itself.
+    fn sees(&self, terrain: &Heightmap, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
+        let origin = pose.translation.vector;
+        let to = Vector3::new(p[0], p[1], p[2]) - origin;
+        let dist = to.norm();
+        if dist >= self.max_range_m || dist < 1e-6 {
+            return false;
+        }
+        let dir = to / dist;
+        let local = pose.rotation.inverse() * dir;
+        let inclination = local.z.clamp(-1.0, 1.0).acos();
+        let azimuth = local.y.atan2(local.x);
+        let in_rings = (self.inclination.0..=self.inclination.1).contains(&inclination);
+        let in_columns = (self.azimuth.0..=self.azimuth.1).contains(&azimuth);
+        in_rings
+            && in_columns
+            && terrain
+                .cast(origin, dir, dist + 0.5)
+                .is_some_and(|hit| hit >= dist - 0.05)
     }
-    terrain
-        .cast(origin, dir, dist + 0.5)
-        .is_some_and(|hit| hit >= dist - 0.05)
 }
 
 /// Prints the matrix as a table.

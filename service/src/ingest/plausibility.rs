@@ -64,55 +64,40 @@ impl PoseGate {
         }
     }
 
-    /// Judges the pose of a scan of `publisher` without recording it.
-    pub fn check(&self, publisher: u64, stamp_ns: u64, position: Vector3<f64>) -> PoseVerdict {
+    /// Judges the pose of a scan of `publisher` and records it: a plausible or relocated pose
+    /// becomes the publisher's accepted one; an implausible one in bounds only builds the
+    /// candidate a relocation needs (the accepted pose stays).
+    pub fn judge(&mut self, publisher: u64, stamp_ns: u64, position: Vector3<f64>) -> PoseVerdict {
         if !self.in_bounds(&position) {
             return PoseVerdict::Implausible;
         }
-        let Some(track) = self.publishers.get(&publisher) else {
-            return PoseVerdict::Plausible;
-        };
-        let here = Fix { stamp_ns, position };
-        if reachable(&self.limits, &track.accepted, &here) {
-            return PoseVerdict::Plausible;
-        }
-        match track.candidate {
-            Some((fix, n)) if reachable(&self.limits, &fix, &here) && n + 1 >= self.limits.confirm_scans => {
-                PoseVerdict::Relocated
-            }
-            _ => PoseVerdict::Implausible,
-        }
-    }
-
-    /// Records the verdict of [`PoseGate::check`] for this scan.
-    pub fn record(&mut self, publisher: u64, stamp_ns: u64, position: Vector3<f64>, verdict: PoseVerdict) {
         if self.publishers.len() >= MAX_TRACKED_PUBLISHERS && !self.publishers.contains_key(&publisher) {
             self.publishers.clear();
         }
         let here = Fix { stamp_ns, position };
-        let in_bounds = self.in_bounds(&position);
-        match verdict {
-            PoseVerdict::Plausible | PoseVerdict::Relocated => {
-                self.publishers.insert(
-                    publisher,
-                    Track {
-                        accepted: here,
-                        candidate: None,
-                    },
-                );
-            }
-            PoseVerdict::Implausible if in_bounds => {
-                let limits = self.limits;
-                if let Some(track) = self.publishers.get_mut(&publisher) {
-                    let n = match track.candidate {
-                        Some((fix, n)) if reachable(&limits, &fix, &here) => n + 1,
-                        _ => 1,
-                    };
-                    track.candidate = Some((here, n));
-                }
-            }
-            PoseVerdict::Implausible => {}
+        let limits = self.limits;
+        let accepted = Track {
+            accepted: here,
+            candidate: None,
+        };
+        let Some(track) = self.publishers.get_mut(&publisher) else {
+            self.publishers.insert(publisher, accepted);
+            return PoseVerdict::Plausible;
+        };
+        if reachable(&limits, &track.accepted, &here) {
+            *track = accepted;
+            return PoseVerdict::Plausible;
         }
+        let agreeing = match track.candidate {
+            Some((fix, n)) if reachable(&limits, &fix, &here) => n + 1,
+            _ => 1,
+        };
+        if agreeing >= limits.confirm_scans {
+            *track = accepted;
+            return PoseVerdict::Relocated;
+        }
+        track.candidate = Some((here, agreeing));
+        PoseVerdict::Implausible
     }
 
     /// Whether every coordinate lies within ±`bounds_m` (NaN never does).
@@ -145,10 +130,7 @@ mod tests {
     }
 
     fn step(g: &mut PoseGate, id: u64, t: u64, x: f64) -> PoseVerdict {
-        let p = Vector3::new(x, 0.0, 0.5);
-        let v = g.check(id, t, p);
-        g.record(id, t, p, v);
-        v
+        g.judge(id, t, Vector3::new(x, 0.0, 0.5))
     }
 
     #[test]

@@ -290,9 +290,7 @@ impl Intake {
             Err(reason) => return self.refuse(source, scan.sequence, reason, metrics),
         };
         let position = scan.pose.translation.vector;
-        let pose = self.poses.check(scan.publisher_id, scan.stamp_ns, position);
-        self.poses
-            .record(scan.publisher_id, scan.stamp_ns, position, pose);
+        let pose = self.poses.judge(scan.publisher_id, scan.stamp_ns, position);
         match pose {
             PoseVerdict::Implausible => {
                 return self.refuse(source, scan.sequence, RejectReason::ImplausiblePose, metrics)
