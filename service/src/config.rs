@@ -163,6 +163,9 @@ pub struct GpConfig {
     /// How each local expert's σ is tied to its own data: `leave_one_out` (default; scaled by
     /// its standardised leave-one-out residuals, docs/EVALUATION.md "Calibration") or `none`.
     pub variance_calibration: crate::map::tiles::VarianceCalibration,
+    /// Scale σ per source and range bin by how well the maps predicted each next scan's returns
+    /// (default on; docs/EVALUATION.md "Calibration").
+    pub prequential_calibration: bool,
 }
 
 /// Online hyperparameter learning (a thread of its own, never on the ingest path).
@@ -328,6 +331,7 @@ impl Default for GpConfig {
             constant_range_m: 10.0,
             online: OnlineConfig::default(),
             variance_calibration: crate::map::tiles::VarianceCalibration::LeaveOneOut,
+            prequential_calibration: true,
         }
     }
 }

@@ -11,6 +11,7 @@ use crate::ingest::{
 };
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
+use crate::map::calibration::Calibrator;
 use crate::map::local::{hyper_sample, HyperSample, MapParams, ScanInput};
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::metrics::prometheus::Exporter;
@@ -214,6 +215,7 @@ impl Daemon {
             let outputs = FitOutputs {
                 learner: feed,
                 aggregate: aggregate_feed,
+                calibrate: config.gp.prequential_calibration,
                 updates,
             };
             std::thread::Builder::new()
@@ -339,6 +341,8 @@ struct FitOutputs {
     learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
     /// Fitted scans for the aggregate thread.
     aggregate: Option<Arc<AggregateFeed>>,
+    /// Learn σ scales from each next scan (`gp.prequential_calibration`).
+    calibrate: bool,
     /// Where a [`MapUpdate`] goes when a scan's map is published.
     updates: zenoh::pubsub::Publisher<'static>,
 }
@@ -361,6 +365,7 @@ fn fit_loop(
     shutdown: &AtomicBool,
 ) {
     let mut window = Window::new(capacity);
+    let mut calibrator = outputs.calibrate.then(Calibrator::default);
     while !shutdown.load(Ordering::Relaxed) {
         let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
             continue;
@@ -376,24 +381,39 @@ fn fit_loop(
         params.kernel = **state.kernel.load();
         match LocalRangeMap::fit(&scan, &params) {
             Ok(map) => {
+                let fitted = started.elapsed();
                 state
                     .metrics
                     .jittered_tiles
                     .fetch_add(map.jittered_tiles() as u64, Ordering::Relaxed);
+                // The maps as they stood before this scan: what its returns test.
+                let before = state.snapshot.load_full();
                 let map = Arc::new(map);
                 window.push(Arc::clone(&map));
-                let maps = window.snapshot();
+                let maps = window.snapshot().with_scales(before.scales);
                 state
                     .snapshot
                     .rcu(|old| maps.with_aggregate(old.aggregate.clone()));
                 let latency = received.elapsed();
                 let m = &state.metrics;
-                m.fit.record(started.elapsed());
+                m.fit.record(fitted);
                 m.scan_to_queryable.record(latency);
                 m.accepted.fetch_add(1, Ordering::Relaxed);
                 announce(&outputs.updates, &scan, latency, maps.maps().len());
                 if let Some((samples, subset)) = &outputs.learner {
                     samples.push(hyper_sample(&scan, &params, *subset));
+                }
+                // Off the scan-to-queryable path: the map already answers with the former scales.
+                if let Some(c) = calibrator.as_mut() {
+                    let _span = info_span!("calibrate").entered();
+                    let calibrating = Instant::now();
+                    let answered = c.observe(&before, &scan, &map);
+                    let scales = c.scales();
+                    state
+                        .snapshot
+                        .rcu(|old| MapSnapshot::clone(old).with_scales(scales));
+                    m.calibrate.record(calibrating.elapsed());
+                    debug!(answered, "σ scales updated");
                 }
                 if let Some(feed) = &outputs.aggregate {
                     if feed.push((scan, map)).is_some() {

@@ -1,8 +1,9 @@
 //! The σ calibration matrix in its quick form (docs/EVALUATION.md "Calibration"): three terrains
 //! of the sim family × three sensors through the daemon's code path. Every cell of the bar is not
-//! met yet (the full run lists them); until it is, CI guards against regression: the pooled 95 %
-//! coverage and the median NLPD of the window's answers must stay where self-calibration brought
-//! them (without it: 0.50 and 1054, which fail).
+//! met yet (the full run lists them); until it is, CI guards against regression: pooled coverage
+//! of window, aggregate and occluded answers and the window's median NLPD must stay where
+//! self-calibration brought them (`quick_regressions`; the matrix without the prequential
+//! calibration fails it, as the second test checks).
 
 use rangegp_service::config::Config;
 use rangegp_service::eval::calibration::{quick_regressions, run_calibration, CalibrationOptions, BANDS};
@@ -45,5 +46,22 @@ fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
     );
     let regressions = quick_regressions(&report);
     anyhow::ensure!(regressions.is_empty(), "{regressions:?}");
+    Ok(())
+}
+
+#[test]
+fn the_guard_fails_without_the_prequential_calibration() -> anyhow::Result<()> {
+    let mut config = Config::default();
+    config.gp.prequential_calibration = false;
+    let report = run_calibration(&CalibrationOptions {
+        quick: true,
+        seed: 0,
+        config,
+    })?;
+    let regressions = quick_regressions(&report);
+    anyhow::ensure!(
+        regressions.len() >= 2,
+        "leave-one-out alone passes the guard: {regressions:?}"
+    );
     Ok(())
 }

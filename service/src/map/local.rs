@@ -141,6 +141,10 @@ pub struct HeightEstimate {
     pub z: f64,
     /// Variance, m² (delta method through the range variance).
     pub var: f64,
+    /// How squarely the sensor's rays meet the surface there, as a fraction of the angle at
+    /// which they would meet flat ground from the same distance (infinite where not measured):
+    /// small near the edge of a shadow, where the surface is the map's smoothing of a jump.
+    pub grazing: f64,
 }
 
 /// The part of a vertical line inside a map's field of view, before any search along it.
@@ -358,35 +362,41 @@ impl LocalRangeMap {
         let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
         let root = root::first_crossing(gap, 0.0, span, ELEVATION_SAMPLES)?;
         let p = Vector3::new(x, y, top - root.t);
-        if self.in_shadow(&p) {
+        let grazing = self.grazing(&p);
+        if grazing < SHADOW_GRAZING_FRACTION {
             return None;
         }
         let var = self.root_variance(gap, &p, root)?;
-        Some(HeightEstimate { z: top - root.t, var })
+        Some(HeightEstimate {
+            z: top - root.t,
+            var,
+            grazing,
+        })
     }
 
-    /// Whether the crossing at `p` is the edge of a shadow rather than ground this scan saw: the
-    /// rays there graze the predicted surface at less than [`SHADOW_GRAZING_FRACTION`] of the
-    /// angle flat ground would be seen at from the same distance. Behind a ridge the vertical
-    /// line's first crossing is where the rays start to pass over the ridge: the range jumps
-    /// there (the map smooths the jump into a steep ramp), and the crossing's height is the
-    /// shadow line, not the ground. Only under the flat-ground prior (it knows the sensor height).
-    fn in_shadow(&self, p: &Vector3<f64>) -> bool {
+    /// The angle at which the rays meet the predicted surface at `p`, as a fraction of the angle
+    /// flat ground would be seen at from the same distance (infinite where it cannot be told: a
+    /// surface receding slower than flat ground, or a prior that does not know the ground).
+    /// Below [`SHADOW_GRAZING_FRACTION`] the crossing is the edge of a shadow rather than ground
+    /// this scan saw: behind a ridge the vertical line's first crossing is where the rays start
+    /// to pass over the ridge; the range jumps there (the map smooths the jump into a steep
+    /// ramp), and the crossing's height is the shadow line, not the ground. Only under the
+    /// flat-ground prior (it knows the sensor height).
+    fn grazing(&self, p: &Vector3<f64>) -> f64 {
         let Prior::FlatGround { height_m, .. } = self.prior else {
-            return false;
+            return f64::INFINITY;
         };
         let Some((inc, az, dist)) = self.look_at(p) else {
-            return false;
+            return f64::INFINITY;
         };
         // Inclination is measured from the sensor's zenith: a smaller one looks farther out.
         let step = SHADOW_PROBE_RAD;
         let rate = (self.mean_range(inc - step, az) - self.mean_range(inc + step, az)) / (2.0 * step);
-        if rate <= 0.0 {
-            return false;
-        }
-        let grazing = dist.atan2(rate);
         let flat = (height_m / dist).clamp(-1.0, 1.0).asin();
-        grazing < SHADOW_GRAZING_FRACTION * flat
+        if rate <= 0.0 || flat <= 0.0 {
+            return f64::INFINITY;
+        }
+        dist.atan2(rate) / flat
     }
 
     /// The part of the vertical line at (x, y) inside the observed field of view, as its top z

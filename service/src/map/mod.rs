@@ -1,6 +1,7 @@
 //! Maps built from scans: the per-scan local range map, its prior, the rolling window, queries.
 
 pub mod aggregate;
+pub mod calibration;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;

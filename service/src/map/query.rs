@@ -1,6 +1,7 @@
 //! Query evaluation over a [`MapSnapshot`]: elevation, variance and rays, in batches.
 
 use super::aggregate::Aggregate;
+use super::local::HeightEstimate;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
@@ -10,8 +11,9 @@ use std::sync::Arc;
 /// How many of the nearest window maps are asked per query point (the least uncertain wins).
 const CANDIDATES: usize = 3;
 
-/// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`].
-fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
+/// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`],
+/// with their index in the snapshot.
+fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<(usize, &Arc<LocalRangeMap>)> {
     let mut near: Vec<(f64, usize)> = snapshot
         .reach()
         .iter()
@@ -23,42 +25,100 @@ fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<&Arc<LocalRangeMap>> {
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
     let maps = snapshot.maps();
-    near.into_iter().take(CANDIDATES).map(|(_, i)| &maps[i]).collect()
+    near.into_iter()
+        .take(CANDIDATES)
+        .map(|(_, i)| (i, &maps[i]))
+        .collect()
 }
 
-/// Elevation at (x, y): the answer of the window map whose sensor is nearest among those whose
-/// view of the vertical line ends behind the surface (nearest is least uncertain: range noise
-/// and footprint grow with distance; such a view crosses the surface for certain), else of the
-/// nearest whose view crosses it anywhere (an overhang seen from below), else the aggregate's
-/// where it has fused cells nearby, else none. Checking the end of the view first costs one mean
-/// evaluation and spares a whole search of maps that cannot answer, like the nearest map at a
-/// point inside its sensor's blind zone (the field of view's part of the line is all free space).
-pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
+/// Who answered an elevation query.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Answerer {
+    /// The window map at this index of [`MapSnapshot::maps`].
+    Window(usize),
+    /// The world aggregate.
+    Aggregate,
+}
+
+/// An elevation answer before σ calibration, with what the calibration keys on.
+#[derive(Debug, Clone, Copy)]
+pub struct RawAnswer {
+    /// The map's own estimate.
+    pub estimate: HeightEstimate,
+    /// Who answered.
+    pub by: Answerer,
+    /// Horizontal distance from the answering map's sensor (the aggregate: from the newest
+    /// sensor position; infinite without one), metres.
+    pub rho_m: f64,
+}
+
+/// Elevation at (x, y) as the maps give it, before the snapshot's σ scales: the answer of the
+/// window map whose sensor is nearest among those whose view of the vertical line ends behind the
+/// surface (nearest is least uncertain: range noise and footprint grow with distance; such a view
+/// crosses the surface for certain), else of the nearest whose view crosses it anywhere (an
+/// overhang seen from below), else the aggregate's where it has fused cells nearby, else none.
+/// Checking the end of the view first costs one mean evaluation and spares a whole search of
+/// maps that cannot answer, like the nearest map at a point inside its sensor's blind zone (the
+/// field of view's part of the line is all free space).
+pub fn raw_elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> Option<RawAnswer> {
     let mut deferred = Vec::new();
     let mut best = None;
-    for m in nearest(snapshot, x, y) {
+    for (i, m) in nearest(snapshot, x, y) {
         let Some(view) = m.vertical_view(x, y) else {
             continue;
         };
         if !view.ends_behind_surface() {
-            deferred.push((m, view));
+            deferred.push((i, m, view));
         } else if let Some(e) = m.elevation_in(x, y, &view) {
-            best = Some(e);
+            best = Some((i, e));
             break;
         }
     }
-    let best = best.or_else(|| deferred.iter().find_map(|(m, view)| m.elevation_in(x, y, view)));
-    let answer = best.map(|e| (e, Source::Window)).or_else(|| {
-        let agg = snapshot.aggregate.as_ref()?;
-        agg.elevation(x, y).map(|e| (e, Source::Aggregate))
+    let best = best.or_else(|| {
+        deferred
+            .iter()
+            .find_map(|(i, m, view)| m.elevation_in(x, y, view).map(|e| (*i, e)))
     });
-    match answer {
-        Some((e, source)) => ElevationItem {
-            z_m: Some(e.z),
-            z_var_m2: Some(e.var),
-            source,
-            observed: true,
-        },
+    let rho = |i: usize| {
+        snapshot
+            .reach()
+            .get(i)
+            .map_or(f64::INFINITY, |[sx, sy, _]| (x - sx).hypot(y - sy))
+    };
+    match best {
+        Some((i, estimate)) => Some(RawAnswer {
+            estimate,
+            by: Answerer::Window(i),
+            rho_m: rho(i),
+        }),
+        None => {
+            let agg = snapshot.aggregate.as_ref()?;
+            agg.elevation(x, y).map(|estimate| RawAnswer {
+                estimate,
+                by: Answerer::Aggregate,
+                rho_m: rho(0),
+            })
+        }
+    }
+}
+
+/// Elevation at (x, y): [`raw_elevation`] with its σ scaled by the snapshot's calibration
+/// ([`super::calibration`]).
+pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
+    match raw_elevation(snapshot, x, y) {
+        Some(a) => {
+            let source = match a.by {
+                Answerer::Window(_) => Source::Window,
+                Answerer::Aggregate => Source::Aggregate,
+            };
+            let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
+            ElevationItem {
+                z_m: Some(a.estimate.z),
+                z_var_m2: Some(a.estimate.var * s * s),
+                source,
+                observed: true,
+            }
+        }
         None => ElevationItem {
             z_m: None,
             z_var_m2: None,

@@ -1,6 +1,7 @@
 //! The rolling window of recent local maps and the immutable snapshot queries read.
 
 use super::aggregate::world::WorldAggregate;
+use super::calibration::SigmaScales;
 use super::local::LocalRangeMap;
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -61,6 +62,8 @@ pub struct MapSnapshot {
     reach: Vec<[f64; 3]>,
     /// The world aggregate as of its last insert (when enabled).
     pub aggregate: Option<Arc<WorldAggregate>>,
+    /// Factors on the maps' σ, learnt from the scans that followed them.
+    pub scales: SigmaScales,
 }
 
 impl MapSnapshot {
@@ -77,6 +80,7 @@ impl MapSnapshot {
             maps,
             reach,
             aggregate,
+            scales: SigmaScales::default(),
         }
     }
 
@@ -86,7 +90,14 @@ impl MapSnapshot {
             maps: self.maps.clone(),
             reach: self.reach.clone(),
             aggregate,
+            scales: self.scales,
         }
+    }
+
+    /// The same maps and aggregate with other σ scales.
+    pub fn with_scales(mut self, scales: SigmaScales) -> Self {
+        self.scales = scales;
+        self
     }
 
     /// Local maps, newest first.

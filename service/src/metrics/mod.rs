@@ -70,6 +70,8 @@ pub struct Metrics {
     pub scan_to_queryable: Latency,
     /// One aggregate insert.
     pub aggregate_insert: Latency,
+    /// One scan's test of the maps before it (prequential σ calibration).
+    pub calibrate: Latency,
     /// Query handling, by [`QueryKind`] in [`QueryKind::ALL`] order, then status.
     queries: [Latency; QueryKind::ALL.len() + 1],
     /// Queries answered.
@@ -109,6 +111,7 @@ impl Default for Metrics {
             fit: Latency::default(),
             scan_to_queryable: Latency::default(),
             aggregate_insert: Latency::default(),
+            calibrate: Latency::default(),
             queries: std::array::from_fn(|_| Latency::default()),
             queries_ok: AtomicU64::new(0),
             queries_failed: AtomicU64::new(0),

@@ -289,6 +289,12 @@ impl Collector for DaemonCollector {
         )?;
         histogram(
             e,
+            "calibrate_seconds",
+            "One scan's test of the maps before it (prequential σ calibration)",
+            &m.calibrate,
+        )?;
+        histogram(
+            e,
             "aggregate_insert_seconds",
             "One aggregate insert",
             &m.aggregate_insert,

@@ -192,7 +192,11 @@ impl Aggregate for PoseAugmentedGp {
         let (inc, az, _) = self.look_at(pose, &point(t))?;
         let (_, var_r) = self.predict_range(pose, inc, az)?;
         let var = root::root_variance(gap, root, var_r)?;
-        Some(HeightEstimate { z: top - t, var })
+        Some(HeightEstimate {
+            z: top - t,
+            var,
+            grazing: f64::INFINITY,
+        })
     }
 
     fn len(&self) -> usize {

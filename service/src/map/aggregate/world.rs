@@ -397,6 +397,7 @@ impl Aggregate for WorldAggregate {
             HeightEstimate {
                 z,
                 var: (m2 / wsum - z * z).max(0.0),
+                grazing: f64::INFINITY,
             }
         })
     }

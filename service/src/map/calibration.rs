@@ -1,0 +1,696 @@
+//! Prequential σ calibration: each new scan tests the maps as they stood before it arrived.
+//!
+//! A stratified sample of the scan's returns is answered by [`query::raw_elevation`] over the
+//! snapshot from before the scan. Each return is a fresh, independent measurement of ground the
+//! maps already claim to know, so its residual against the answer, with the return's own noise
+//! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
+//! area their return stands for and kept per (source, grazing class, range bin from the answering
+//! sensor) over the last scans; within a cell, each fifth of them by the answer's own σ gets the
+//! factor on σ whose 68 % and 95 % intervals cover that share. Nothing here knows the terrain or
+//! the sensor: it adapts to whatever the robot drives on, and follows it when the terrain changes
+//! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration".
+
+use super::local::HeightEstimate;
+use super::query::{self, Answerer};
+use super::window::MapSnapshot;
+use super::{LocalRangeMap, ScanInput};
+use crate::gp::sphere;
+use nalgebra::Vector3;
+use rangegp_proto::msg::Source;
+use std::collections::VecDeque;
+
+/// Upper edges of the range bins, metres of horizontal distance from the answering sensor (the
+/// last bin is open-ended). Doubling widths: the error of a range map grows with range.
+pub const RANGE_EDGES_M: [f64; 6] = [2.5, 5.0, 10.0, 20.0, 40.0, 80.0];
+/// Step of the finite differences that give a return's surface normal, radians (0.1°).
+const NORMAL_STEP_RAD: f64 = 1.745e-3;
+/// Floor of the cosine between a ray and the surface normal in a return's area weight (a
+/// return grazing the surface at under 3° counts as if at 3°).
+const MIN_COS_INCIDENCE: f64 = 0.05;
+/// Number of range bins.
+pub const BINS: usize = RANGE_EDGES_M.len() + 1;
+/// Returns sampled per range bin from each scan.
+pub const PER_BIN_PER_SCAN: usize = 48;
+/// Residuals a bin remembers (about 30 scans at the full quota).
+pub const BIN_MEMORY: usize = 1500;
+/// A bin's scale stays 1 (the map's own, leave-one-out-calibrated σ) until it holds this many.
+pub const MIN_RESIDUALS: usize = 40;
+/// Bounds of a scale: σ is never shrunk below a tenth nor widened past a hundredfold.
+pub const SCALE_BOUNDS: (f64, f64) = (0.1, 100.0);
+
+/// How many groups of a bin's residuals, by the answer's own σ, get a scale each.
+pub const SIGMA_GROUPS: usize = 5;
+
+/// The σ scale of one range bin as a function of the answer's own σ: each group of residuals
+/// (equal counts, by σ) has a scale at its median log σ; between medians the scale is linear in
+/// log σ (see [`BinScale::factor`] beyond them). Answers the map itself is surer of can be more or less
+/// overconfident than the rest, and one factor per bin cannot right both.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BinScale {
+    /// Median ln σ of each group, ascending (equal when the bin has few residuals).
+    log_sd: [f64; SIGMA_GROUPS],
+    /// Factor on σ of each group.
+    scale: [f64; SIGMA_GROUPS],
+}
+
+impl Default for BinScale {
+    fn default() -> Self {
+        Self {
+            // Below every σ: the factor is 1 everywhere.
+            log_sd: [f64::NEG_INFINITY; SIGMA_GROUPS],
+            scale: [1.0; SIGMA_GROUPS],
+        }
+    }
+}
+
+impl BinScale {
+    /// The factor on an answer of standard deviation `sd`. Below the surest group's median the
+    /// calibrated σ stays at that group's (the map is never trusted to be surer than the surest
+    /// answers the scans tested); above the widest group's, that group's factor holds.
+    pub fn factor(&self, sd: f64) -> f64 {
+        let x = sd.max(1e-12).ln();
+        let (l, s) = (&self.log_sd, &self.scale);
+        if x <= l[0] {
+            return s[0];
+        }
+        for k in 1..SIGMA_GROUPS {
+            if x <= l[k] {
+                let w = if l[k] > l[k - 1] {
+                    (x - l[k - 1]) / (l[k] - l[k - 1])
+                } else {
+                    1.0
+                };
+                return (s[k - 1].ln() * (1.0 - w) + s[k].ln() * w).exp();
+            }
+        }
+        s[SIGMA_GROUPS - 1]
+    }
+}
+
+/// Upper edges of the grazing classes (an answer's [`HeightEstimate::grazing`]; the last class
+/// is open-ended and holds every answer that is not near a shadow, the aggregate's included).
+pub const GRAZING_EDGES: [f64; 2] = [0.5, 0.75];
+/// Number of grazing classes.
+pub const CLASSES: usize = GRAZING_EDGES.len() + 1;
+/// Where each grazing class's scale holds exactly; between them it is interpolated in ln g.
+const GRAZING_CENTRES: [f64; CLASSES] = [0.354, 0.612, 1.0];
+
+/// σ scales of one source, by grazing class and range bin.
+pub type ScaleTable = [[BinScale; BINS]; CLASSES];
+
+/// Per (source, grazing class, range bin) σ scales; what a snapshot applies to its answers.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SigmaScales {
+    /// Window answers.
+    pub window: ScaleTable,
+    /// Aggregate answers (range from the newest sensor position; all in the last class).
+    pub aggregate: ScaleTable,
+}
+
+impl SigmaScales {
+    /// The factor on σ (not σ²) for an answer `estimate` of `source` at horizontal distance
+    /// `rho_m`. Between the centres of neighbouring range bins and grazing classes the factor is
+    /// interpolated bilinearly in (ln ρ, ln g), so that σ never jumps at an edge.
+    pub fn factor(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+        let table = match source {
+            Source::Aggregate => &self.aggregate,
+            _ => &self.window,
+        };
+        let sd = estimate.var.max(0.0).sqrt();
+        let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
+        let (b0, b1, wb) = bracket(rho_m, &rho_centres);
+        let (c0, c1, wc) = bracket(estimate.grazing, &GRAZING_CENTRES);
+        let ln = |c: usize, b: usize| table[c][b].factor(sd).ln();
+        let lower = ln(c0, b0) * (1.0 - wb) + ln(c0, b1) * wb;
+        let upper = ln(c1, b0) * (1.0 - wb) + ln(c1, b1) * wb;
+        (lower * (1.0 - wc) + upper * wc).exp()
+    }
+}
+
+/// The neighbouring `centres` (ascending) around `x` and the weight of the upper, linear in ln x;
+/// beyond the ends, the end alone.
+fn bracket(x: f64, centres: &[f64]) -> (usize, usize, f64) {
+    let last = centres.len() - 1;
+    let Some(upper) = centres.iter().position(|&c| x <= c) else {
+        return (last, last, 0.0);
+    };
+    if upper == 0 {
+        return (0, 0, 0.0);
+    }
+    let (lo, hi) = (centres[upper - 1].ln(), centres[upper].ln());
+    (upper - 1, upper, (x.max(1e-12).ln() - lo) / (hi - lo))
+}
+
+/// A range bin's centre: the geometric middle of its edges (the first bin's: half its edge; the
+/// open last bin's: √2 × its lower edge).
+fn bin_centre_m(bin: usize) -> f64 {
+    match bin {
+        0 => 0.5 * RANGE_EDGES_M[0],
+        k if k == BINS - 1 => RANGE_EDGES_M[k - 1] * std::f64::consts::SQRT_2,
+        k => (RANGE_EDGES_M[k - 1] * RANGE_EDGES_M[k]).sqrt(),
+    }
+}
+
+/// The range bin of horizontal distance `rho_m`.
+pub fn bin_of(rho_m: f64) -> usize {
+    RANGE_EDGES_M.iter().take_while(|&&e| rho_m >= e).count()
+}
+
+/// The grazing class of an answer's grazing fraction.
+pub fn class_of(grazing: f64) -> usize {
+    GRAZING_EDGES.iter().take_while(|&&e| grazing >= e).count()
+}
+
+/// One tested answer: squared residual, the answer's variance and the return's own noise
+/// variance along z, m².
+#[derive(Debug, Clone, Copy)]
+struct Residual {
+    r2: f64,
+    var: f64,
+    noise_var: f64,
+    /// Ground area the return stands for, relative ([`area_weight`]).
+    weight: f64,
+}
+
+/// Recent residuals of one source, by grazing class and range bin.
+type Residuals = [[VecDeque<Residual>; BINS]; CLASSES];
+
+/// The fitter's calibration state: recent residuals per cell and the scales they give.
+#[derive(Debug, Clone, Default)]
+pub struct Calibrator {
+    window: Residuals,
+    aggregate: Residuals,
+    scales: SigmaScales,
+}
+
+impl Calibrator {
+    /// The current scales.
+    pub fn scales(&self) -> SigmaScales {
+        self.scales
+    }
+
+    /// Residuals held, window then aggregate, by range bin (all grazing classes).
+    pub fn counts(&self) -> ([usize; BINS], [usize; BINS]) {
+        let count = |r: &Residuals| std::array::from_fn(|b| r.iter().map(|c| c[b].len()).sum());
+        (count(&self.window), count(&self.aggregate))
+    }
+
+    /// Tests `snapshot` (the maps before `scan`) against a stratified sample of `scan`'s returns
+    /// and updates the scales; `map` is the scan's own fitted map, which gives each return's
+    /// surface normal (the ground area it stands for). Returns how many returns were answered.
+    /// Does nothing before the first map.
+    pub fn observe(&mut self, snapshot: &MapSnapshot, scan: &ScanInput, map: &LocalRangeMap) -> usize {
+        let Some(newest) = snapshot.maps().first() else {
+            return 0;
+        };
+        let reference = newest.sensor_position();
+        let sample = stratified_sample(scan, map, &reference);
+        let answers = query::par_map(
+            &sample,
+            rayon::current_num_threads(),
+            |&(p, noise_var, weight)| {
+                let a = query::raw_elevation(snapshot, p.x, p.y)?;
+                Some((p, noise_var, weight, a))
+            },
+        );
+        let mut touched = [false; 2];
+        let mut answered = 0;
+        for (p, noise_var, weight, a) in answers.into_iter().flatten() {
+            let r2 = (p.z - a.estimate.z).powi(2);
+            if !(r2.is_finite() && a.estimate.var.is_finite()) {
+                continue;
+            }
+            let (bins, which) = match a.by {
+                Answerer::Aggregate => (&mut self.aggregate, 1),
+                Answerer::Window(_) => (&mut self.window, 0),
+            };
+            let q = &mut bins[class_of(a.estimate.grazing)][bin_of(a.rho_m)];
+            if q.len() == BIN_MEMORY {
+                q.pop_front();
+            }
+            q.push_back(Residual {
+                r2,
+                var: a.estimate.var.max(1e-14),
+                noise_var,
+                weight,
+            });
+            touched[which] = true;
+            answered += 1;
+        }
+        if touched[0] {
+            self.scales.window = table_of(&self.window);
+        }
+        if touched[1] {
+            self.scales.aggregate = table_of(&self.aggregate);
+        }
+        answered
+    }
+}
+
+/// Up to [`PER_BIN_PER_SCAN`] returns of `scan` per range bin from `reference` (a sensor position),
+/// spread over the scan by a stride coprime with its size; each as a map point, its noise
+/// variance along z and the ground area it stands for ([`area_weight`]).
+fn stratified_sample(
+    scan: &ScanInput,
+    map: &LocalRangeMap,
+    reference: &Vector3<f64>,
+) -> Vec<(Vector3<f64>, f64, f64)> {
+    let n = scan.rays.len();
+    let mut quota = [PER_BIN_PER_SCAN; BINS];
+    let mut out = Vec::with_capacity(BINS * PER_BIN_PER_SCAN);
+    if n == 0 {
+        return out;
+    }
+    let stride = coprime_stride(n);
+    let origin = scan.pose.translation.vector;
+    let mut k = (scan.sequence as usize).wrapping_mul(2_654_435_761) % n;
+    for _ in 0..n {
+        let ray = &scan.rays[k];
+        k = (k + stride) % n;
+        let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+        let dir = scan.pose.rotation * Vector3::new(x, y, z);
+        let p = origin + dir * ray.range;
+        let bin = bin_of((p.x - reference.x).hypot(p.y - reference.y));
+        if quota[bin] == 0 {
+            continue;
+        }
+        quota[bin] -= 1;
+        let sd = scan.range_noise_per_m * ray.range * dir.z;
+        let weight = area_weight(scan, map, ray.inclination, ray.azimuth, ray.range);
+        out.push((p, sd * sd, weight));
+        if quota.iter().all(|&q| q == 0) {
+            break;
+        }
+    }
+    out
+}
+
+/// The ground-plane area a return stands for per unit solid angle: r² · |n_z| / |cos i|, where n
+/// is the surface normal (from the scan's own map: the cross product of its surface's tangents
+/// along inclination and azimuth) and i the angle between ray and normal. Returns sample the
+/// ground by solid angle while a planner asks about it by area: faces turned toward the sensor
+/// are over-sampled, grazed ground under-sampled, and vertical faces, which hold no ground area,
+/// carry no weight.
+fn area_weight(scan: &ScanInput, map: &LocalRangeMap, inclination: f64, azimuth: f64, range: f64) -> f64 {
+    let surface = |inc: f64, az: f64| {
+        let [x, y, z] = sphere::to_sphere(inc, az, 1.0);
+        Vector3::new(x, y, z) * map.predict_range(inc, az).0
+    };
+    let at = surface(inclination, azimuth);
+    let along_inc = surface(inclination + NORMAL_STEP_RAD, azimuth) - at;
+    let along_az = surface(inclination, azimuth + NORMAL_STEP_RAD) - at;
+    let Some(normal) = along_inc.cross(&along_az).try_normalize(1e-12) else {
+        return 0.0;
+    };
+    let [x, y, z] = sphere::to_sphere(inclination, azimuth, 1.0);
+    let cos_incidence = Vector3::new(x, y, z).dot(&normal).abs();
+    let up = (scan.pose.rotation * normal).z.abs();
+    let weight = range * range * up / cos_incidence.max(MIN_COS_INCIDENCE);
+    if weight.is_finite() {
+        weight
+    } else {
+        0.0
+    }
+}
+
+/// A stride near n·0.618 that shares no factor with `n`, so that stepping by it visits every index.
+fn coprime_stride(n: usize) -> usize {
+    let gcd = |mut a: usize, mut b: usize| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let mut s = ((n as f64 * 0.618_033_988_7) as usize).max(1);
+    while gcd(s, n) != 1 {
+        s += 1;
+    }
+    s
+}
+
+/// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes the scales of the
+/// nearest range bin of its grazing class that has them (the wider, between two as near); a
+/// class with none at all takes the nearest class's. So an empty cell neither pulls its
+/// neighbours' interpolation toward 1 nor answers with the map's raw σ.
+fn table_of(residuals: &Residuals) -> ScaleTable {
+    let rows: Vec<Option<[BinScale; BINS]>> = residuals.iter().map(row_of).collect();
+    std::array::from_fn(|c| nearest_filled(&rows, c).unwrap_or_default())
+}
+
+/// One grazing class's scales by range bin, gaps filled from the nearest bin; `None` when no
+/// bin has [`MIN_RESIDUALS`].
+fn row_of(bins: &[VecDeque<Residual>; BINS]) -> Option<[BinScale; BINS]> {
+    let learnt: Vec<Option<BinScale>> = bins
+        .iter()
+        .map(|b| (b.len() >= MIN_RESIDUALS).then(|| bin_scale_of(b)))
+        .collect();
+    learnt
+        .iter()
+        .any(Option::is_some)
+        .then(|| std::array::from_fn(|k| nearest_filled(&learnt, k).unwrap_or_default()))
+}
+
+/// `items[k]` if present, else the nearest present one (the wider, at σ = 1 mm, of two as near).
+fn nearest_filled<T: Copy + Widest>(items: &[Option<T>], k: usize) -> Option<T> {
+    (0..items.len()).find_map(|d| {
+        let below = k.checked_sub(d).and_then(|i| items[i]);
+        let above = items.get(k + d).copied().flatten();
+        match (below, above) {
+            (Some(a), Some(b)) => Some(if a.width() >= b.width() { a } else { b }),
+            (a, b) => a.or(b),
+        }
+    })
+}
+
+/// How wide a set of scales makes σ, to choose between two equally near fills.
+trait Widest {
+    fn width(&self) -> f64;
+}
+
+impl Widest for BinScale {
+    fn width(&self) -> f64 {
+        self.factor(1e-3)
+    }
+}
+
+impl Widest for [BinScale; BINS] {
+    fn width(&self) -> f64 {
+        self.iter().map(|b| b.factor(1e-3)).sum()
+    }
+}
+
+/// The scales of one bin: its residuals sorted by the answer's σ, cut into [`SIGMA_GROUPS`]
+/// groups of equal count when each can hold [`MIN_RESIDUALS`] (else one group for all).
+fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
+    let mut sorted: Vec<Residual> = residuals.iter().copied().collect();
+    sorted.sort_by(|a, b| a.var.total_cmp(&b.var));
+    let mut out = BinScale::default();
+    if sorted.is_empty() {
+        return out;
+    }
+    let groups = if sorted.len() >= SIGMA_GROUPS * MIN_RESIDUALS {
+        SIGMA_GROUPS
+    } else {
+        1
+    };
+    for k in 0..SIGMA_GROUPS {
+        // With one group, every slot holds the same (whole-bin) scale.
+        let g = if groups == 1 {
+            &sorted[..]
+        } else {
+            &sorted[k * sorted.len() / groups..(k + 1) * sorted.len() / groups]
+        };
+        out.log_sd[k] = 0.5 * g[g.len() / 2].var.ln();
+        out.scale[k] = scale_of(g);
+    }
+    out
+}
+
+/// The σ scale of one group: within the band where 93–97 % of residuals fall inside 1.96 σ and
+/// 62–74 % inside 1 σ, the one nearest to 95 % coverage; where heavy tails leave no such band, the
+/// geometric middle of the two demands. 1 until [`MIN_RESIDUALS`] are held.
+fn scale_of(residuals: &[Residual]) -> f64 {
+    if residuals.len() < MIN_RESIDUALS {
+        return 1.0;
+    }
+    let at = |k: f64, share: f64| scale_for_coverage(residuals, k, share);
+    let target = at(1.96, 0.95);
+    let lo = at(1.96, 0.93).max(at(1.0, 0.62));
+    let hi = at(1.96, 0.97).min(at(1.0, 0.74));
+    let s = if lo <= hi {
+        target.clamp(lo, hi)
+    } else {
+        (lo * hi).sqrt()
+    };
+    s.clamp(SCALE_BOUNDS.0, SCALE_BOUNDS.1)
+}
+
+/// The smallest scale s (bisection in log s over [`SCALE_BOUNDS`]) at which a `share` of the
+/// residuals lies within k·sqrt(s²·var + noise_var).
+fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
+    // Weights that sum to nothing (every return on a vertical face) fall back to counts.
+    let total: f64 = residuals.iter().map(|r| r.weight).sum();
+    let weight = |r: &Residual| if total > 0.0 { r.weight } else { 1.0 };
+    let need = share * residuals.iter().map(weight).sum::<f64>();
+    let covered = |s: f64| {
+        let s2 = s * s;
+        residuals
+            .iter()
+            .filter(|r| r.r2 <= k * k * (s2 * r.var + r.noise_var))
+            .map(weight)
+            .sum::<f64>()
+    };
+    let (mut lo, mut hi) = (SCALE_BOUNDS.0.ln(), SCALE_BOUNDS.1.ln());
+    for _ in 0..30 {
+        let mid = 0.5 * (lo + hi);
+        if covered(mid.exp()) >= need {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    hi.exp()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::test_support::{params, scan_of};
+    use crate::map::Window;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+    use rangegp_sim::Heightmap;
+    use std::sync::Arc;
+
+    /// The seed-000 scanner 0.75 m above flat ground, at `x` along the track.
+    fn scan_over_flat(x: f64, sequence: u64) -> ScanInput {
+        let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+        let pose = Isometry3::from_parts(Translation3::new(x, 0.0, 0.75), UnitQuaternion::identity());
+        let mut scan = scan_of(&terrain, pose);
+        scan.sequence = sequence;
+        scan
+    }
+
+    /// Share of `probes` whose true height lies within 1.96 σ of the snapshot's answer.
+    fn coverage95(snapshot: &MapSnapshot, terrain: &Heightmap, probes: &[[f64; 2]]) -> f64 {
+        let hits: Vec<bool> = probes
+            .iter()
+            .filter_map(|&[x, y]| {
+                let e = query::elevation(snapshot, x, y);
+                let (z, var) = (e.z_m?, e.z_var_m2?);
+                Some((z - terrain.height(x, y)?).abs() <= 1.96 * var.sqrt())
+            })
+            .collect();
+        assert!(
+            hits.len() > probes.len() / 2,
+            "only {} of {} answered",
+            hits.len(),
+            probes.len()
+        );
+        hits.iter().filter(|&&h| h).count() as f64 / hits.len() as f64
+    }
+
+    #[test]
+    fn on_rough_terrain_the_next_scans_teach_a_sigma_that_covers_the_truth() {
+        // Rough fBm relief (p95 slope 16°) and maps without their own leave-one-out calibration:
+        // their σ is the kernel's, far too sure of this ground.
+        let spec = rangegp_sim::family::family()
+            .into_iter()
+            .find(|t| t.name == "fbm-h05-16deg")
+            .expect("family terrain");
+        let terrain = spec.build(7, 40.0);
+        let preset = rangegp_sim::ScannerPreset::seed000();
+        let path = rangegp_sim::Path::wander(3, &terrain, 12, 0.5, 0.2);
+        let mut window = Window::new(16);
+        let mut calibrator = Calibrator::default();
+        let mut snapshot = MapSnapshot::default();
+        for i in 0..12 {
+            let mut scan = scan_of(&terrain, path.pose(&terrain, i, preset.mount_height_m));
+            scan.sequence = i as u64 + 1;
+            let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+            calibrator.observe(&snapshot, &scan, &map);
+            window.push(Arc::new(map));
+            snapshot = window.snapshot().with_scales(calibrator.scales());
+        }
+        // Probes 1–8 m ahead of and beside the last pose, inside the forward field of view.
+        let last = path.pose(&terrain, 11, preset.mount_height_m);
+        let probes: Vec<[f64; 2]> = (0..400)
+            .map(|k| {
+                let r = 1.0 + 7.0 * ((k * 37) % 400) as f64 / 400.0;
+                let a = -1.2 + 2.4 * ((k * 53) % 400) as f64 / 400.0;
+                let p = last * nalgebra::Point3::new(r * a.cos(), r * a.sin(), 0.0);
+                [p.x, p.y]
+            })
+            .collect();
+        let raw = coverage95(&window.snapshot(), &terrain, &probes);
+        let calibrated = coverage95(&snapshot, &terrain, &probes);
+        assert!(
+            raw < 0.8,
+            "the raw σ already covers {raw:.3}: the test proves nothing"
+        );
+        assert!(
+            calibrated > 0.88,
+            "calibrated coverage {calibrated:.3} (raw {raw:.3})"
+        );
+        let (window_counts, _) = calibrator.counts();
+        assert!(window_counts.iter().sum::<usize>() >= 3 * MIN_RESIDUALS);
+    }
+
+    #[test]
+    fn before_the_first_map_nothing_is_learnt() {
+        let mut calibrator = Calibrator::default();
+        let scan = scan_over_flat(0.0, 1);
+        let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        assert_eq!(calibrator.observe(&MapSnapshot::default(), &scan, &map), 0);
+        assert_eq!(calibrator.scales(), SigmaScales::default());
+    }
+
+    #[test]
+    fn the_factor_is_continuous_across_range_bins_grazing_classes_and_sigma_groups() {
+        let mut scales = SigmaScales::default();
+        for (c, row) in scales.window.iter_mut().enumerate() {
+            for (k, b) in row.iter_mut().enumerate() {
+                b.log_sd = [-6.0, -5.0, -4.0, -3.0, -2.0];
+                b.scale = std::array::from_fn(|g| 1.0 + k as f64 + 0.5 * g as f64 + 2.0 * c as f64);
+            }
+        }
+        let at = |rho: f64, grazing: f64, sd: f64| {
+            let e = HeightEstimate {
+                z: 0.0,
+                var: sd * sd,
+                grazing,
+            };
+            scales.factor(Source::Window, rho, &e)
+        };
+        let rhos = RANGE_EDGES_M.iter().copied().chain((0..BINS).map(bin_centre_m));
+        let grazings = GRAZING_EDGES.iter().chain(GRAZING_CENTRES.iter()).copied();
+        for rho in rhos {
+            for sd in [1e-3, (-4.5f64).exp(), 0.05, 1.0] {
+                let jump = (at(rho - 1e-9, 0.8, sd) - at(rho + 1e-9, 0.8, sd)).abs();
+                assert!(jump < 1e-6, "jump at ρ {rho}, σ {sd}");
+                let jump = (at(rho, 0.8, sd * (1.0 - 1e-9)) - at(rho, 0.8, sd)).abs();
+                assert!(jump < 1e-6, "jump at σ {sd}");
+            }
+        }
+        for g in grazings {
+            let jump = (at(7.0, g - 1e-9, 0.01) - at(7.0, g + 1e-9, 0.01)).abs();
+            assert!(jump < 1e-6, "jump at grazing {g}");
+        }
+        // At a cell's centres its own factor holds; far from any shadow, the last class's.
+        let (c, b) = (1, 3);
+        let f = at(bin_centre_m(b), GRAZING_CENTRES[c], 0.05);
+        assert!((f - scales.window[c][b].factor(0.05)).abs() < 1e-9);
+        let f = at(bin_centre_m(b), f64::INFINITY, 0.05);
+        assert!((f - scales.window[CLASSES - 1][b].factor(0.05)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
+        let mut residuals = Residuals::default();
+        let r = |sd: f64| Residual {
+            r2: sd * sd,
+            var: 1e-6,
+            noise_var: 0.0,
+            weight: 1.0,
+        };
+        // Only range bins 1 and 4 of the last class have residuals: errors 2 mm and 20 mm.
+        residuals[CLASSES - 1][1] = (0..200)
+            .map(|i| r(0.002 * (1.0 + (i % 7) as f64 / 7.0)))
+            .collect();
+        residuals[CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
+        let table = table_of(&residuals);
+        let f = |c: usize, b: usize| table[c][b].factor(1e-3);
+        assert_eq!(f(CLASSES - 1, 0), f(CLASSES - 1, 1), "bin 0 from bin 1");
+        assert_eq!(f(CLASSES - 1, 6), f(CLASSES - 1, 4), "bin 6 from bin 4");
+        // Bins 2 and 3 lie between: 2 is nearer 1, and 3 nearer 4.
+        assert_eq!(f(CLASSES - 1, 2), f(CLASSES - 1, 1));
+        assert_eq!(f(CLASSES - 1, 3), f(CLASSES - 1, 4));
+        // Classes with no residuals at all copy the nearest class.
+        assert_eq!(table[0], table[CLASSES - 1]);
+        assert!(f(CLASSES - 1, 4) > 5.0 * f(CLASSES - 1, 1));
+    }
+
+    fn residuals(sd: f64, var: f64, n: usize) -> Vec<Residual> {
+        // Deterministic standard normal quantiles: an exactly Gaussian sample.
+        (0..n)
+            .map(|i| {
+                let u = (i as f64 + 0.5) / n as f64;
+                let z = inverse_normal(u);
+                Residual {
+                    r2: (sd * z).powi(2),
+                    var,
+                    noise_var: 0.0,
+                    weight: 1.0,
+                }
+            })
+            .collect()
+    }
+
+    fn inverse_normal(u: f64) -> f64 {
+        let (mut lo, mut hi) = (-10.0, 10.0);
+        for _ in 0..80 {
+            let mid = 0.5 * (lo + hi);
+            if crate::map::local::normal_cdf(mid) < u {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        0.5 * (lo + hi)
+    }
+
+    #[test]
+    fn a_gaussian_error_three_times_the_claimed_sigma_gets_a_scale_of_three() {
+        let r = residuals(0.03, 0.01 * 0.01, 1000);
+        let s = scale_of(&r);
+        assert!((s - 3.0).abs() < 0.05, "scale {s}");
+    }
+
+    #[test]
+    fn the_returns_own_noise_is_not_charged_to_the_map() {
+        let mut r = residuals(0.05, 0.03 * 0.03, 1000);
+        for x in &mut r {
+            x.noise_var = 0.04 * 0.04;
+        }
+        // 0.05² = 0.03² + 0.04²: the map's σ was right.
+        let s = scale_of(&r);
+        assert!((s - 1.0).abs() < 0.05, "scale {s}");
+    }
+
+    #[test]
+    fn weights_that_sum_to_nothing_fall_back_to_counts() {
+        let mut r = residuals(0.03, 0.01 * 0.01, 1000);
+        for x in &mut r {
+            x.weight = 0.0;
+        }
+        let s = scale_of(&r);
+        assert!((s - 3.0).abs() < 0.05, "scale {s}");
+    }
+
+    #[test]
+    fn few_residuals_leave_the_scale_at_one() {
+        assert_eq!(scale_of(&residuals(1.0, 1e-6, MIN_RESIDUALS - 1)), 1.0);
+    }
+
+    #[test]
+    fn bins_double_in_width() {
+        assert_eq!(bin_of(0.0), 0);
+        assert_eq!(bin_of(2.4), 0);
+        assert_eq!(bin_of(2.5), 1);
+        assert_eq!(bin_of(39.0), 4);
+        assert_eq!(bin_of(500.0), BINS - 1);
+    }
+
+    #[test]
+    fn the_stride_visits_every_index() {
+        for n in [1, 2, 10, 64, 1000, 65_536] {
+            let s = coprime_stride(n);
+            let mut seen = vec![false; n];
+            let mut k = 0;
+            for _ in 0..n {
+                seen[k] = true;
+                k = (k + s) % n;
+            }
+            assert!(seen.iter().all(|&v| v), "n {n}");
+        }
+    }
+}
