@@ -147,22 +147,6 @@ pub struct HeightEstimate {
     pub grazing: f64,
 }
 
-/// The part of a vertical line inside a map's field of view, before any search along it.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct VerticalView {
-    top: f64,
-    span: f64,
-    ends_behind_surface: bool,
-}
-
-impl VerticalView {
-    /// Whether the line's last observed point lies at or behind the surface: then it crosses the
-    /// surface for certain (a view ending in free space, as near a sensor's blind zone, may not).
-    pub fn ends_behind_surface(&self) -> bool {
-        self.ends_behind_surface
-    }
-}
-
 /// A predicted hit along a ray.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RayEstimate {
@@ -339,23 +323,6 @@ impl LocalRangeMap {
     pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
         let (top, span) = self.vertical_fov(x, y)?;
         self.first_crossing_down(x, y, top, span)
-    }
-
-    /// The vertical line at (x, y) as this scan saw it (one mean evaluation, at its bottom), or
-    /// `None` when it misses the field of view.
-    pub fn vertical_view(&self, x: f64, y: f64) -> Option<VerticalView> {
-        let (top, span) = self.vertical_fov(x, y)?;
-        let bottom = self.gap(&Vector3::new(x, y, top - span));
-        Some(VerticalView {
-            top,
-            span,
-            ends_behind_surface: bottom.is_some_and(|g| g >= 0.0),
-        })
-    }
-
-    /// [`Self::elevation`] along a view from [`Self::vertical_view`] at the same (x, y).
-    pub fn elevation_in(&self, x: f64, y: f64, view: &VerticalView) -> Option<HeightEstimate> {
-        self.first_crossing_down(x, y, view.top, view.span)
     }
 
     fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {

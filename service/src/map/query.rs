@@ -52,79 +52,106 @@ pub struct RawAnswer {
     pub rho_m: f64,
 }
 
+/// Window maps whose sensors lie within this much farther than the answering map's blend their
+/// answers with it, so that an answer never jumps where the nearest map changes (metres).
+pub const BLEND_M: f64 = 0.1;
+
 /// Elevation at (x, y) as the maps give it, before the snapshot's σ scales: the answer of the
-/// window map whose sensor is nearest among those whose view of the vertical line ends behind the
-/// surface (nearest is least uncertain: range noise and footprint grow with distance; such a view
-/// crosses the surface for certain), else of the nearest whose view crosses it anywhere (an
-/// overhang seen from below), else the aggregate's where it has fused cells nearby, else none.
-/// Checking the end of the view first costs one mean evaluation and spares a whole search of
-/// maps that cannot answer, like the nearest map at a point inside its sensor's blind zone (the
-/// field of view's part of the line is all free space).
+/// window map whose sensor is nearest among those that answer (nearest is least uncertain: range
+/// noise and footprint grow with distance), else the aggregate's where it has fused cells nearby,
+/// else none. The choice depends on distance alone, so it changes only where two sensors are
+/// equally far, and there [`elevation`] blends (an earlier rule preferred maps whose view of the
+/// vertical line ended behind the surface; that test flickered near the lowest ring and moved
+/// 1.4 % of answers by over 1 mm, up to 4 cm, under 1 µm moves of the query point).
 pub fn raw_elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> Option<RawAnswer> {
-    let mut deferred = Vec::new();
-    let mut best = None;
-    for (i, m) in nearest(snapshot, x, y) {
-        let Some(view) = m.vertical_view(x, y) else {
-            continue;
-        };
-        if !view.ends_behind_surface() {
-            deferred.push((i, m, view));
-        } else if let Some(e) = m.elevation_in(x, y, &view) {
-            best = Some((i, e));
-            break;
-        }
-    }
-    let best = best.or_else(|| {
-        deferred
-            .iter()
-            .find_map(|(i, m, view)| m.elevation_in(x, y, view).map(|e| (*i, e)))
-    });
+    blended_elevation(snapshot, x, y).map(|(primary, _)| primary)
+}
+
+/// [`raw_elevation`] and, when the next map that answers has its sensor less than [`BLEND_M`]
+/// farther away, that answer with its weight in the blend:
+/// ½ where both sensors are equally far, falling smoothly to 0 at [`BLEND_M`]. Where the nearest
+/// map changes, the two swap roles at equal weights, so the blend is continuous.
+fn blended_elevation(
+    snapshot: &MapSnapshot,
+    x: f64,
+    y: f64,
+) -> Option<(RawAnswer, Option<(RawAnswer, f64)>)> {
     let rho = |i: usize| {
         snapshot
             .reach()
             .get(i)
             .map_or(f64::INFINITY, |[sx, sy, _]| (x - sx).hypot(y - sy))
     };
-    match best {
-        Some((i, estimate)) => Some(RawAnswer {
-            estimate,
-            by: Answerer::Window(i),
-            rho_m: rho(i),
-        }),
-        None => {
-            let agg = snapshot.aggregate.as_ref()?;
-            agg.elevation(x, y).map(|estimate| RawAnswer {
-                estimate,
-                by: Answerer::Aggregate,
-                rho_m: rho(0),
-            })
+    let window = |i: usize, estimate: HeightEstimate| RawAnswer {
+        estimate,
+        by: Answerer::Window(i),
+        rho_m: rho(i),
+    };
+    let mut best: Option<RawAnswer> = None;
+    for (i, m) in nearest(snapshot, x, y) {
+        if let Some(first) = &best {
+            let gap = rho(i) - first.rho_m;
+            if gap >= BLEND_M {
+                break;
+            }
+            if let Some(e) = m.elevation(x, y) {
+                let t = (gap / BLEND_M).clamp(0.0, 1.0);
+                let weight = 0.5 * (1.0 - t * t * (3.0 - 2.0 * t));
+                return Some((*first, Some((window(i, e), weight))));
+            }
+        } else if let Some(e) = m.elevation(x, y) {
+            best = Some(window(i, e));
         }
     }
+    if let Some(first) = best {
+        return Some((first, None));
+    }
+    let agg = snapshot.aggregate.as_ref()?;
+    agg.elevation(x, y).map(|estimate| {
+        let answer = RawAnswer {
+            estimate,
+            by: Answerer::Aggregate,
+            rho_m: rho(0),
+        };
+        (answer, None)
+    })
 }
 
-/// Elevation at (x, y): [`raw_elevation`] with its σ scaled by the snapshot's calibration
-/// ([`super::calibration`]).
+/// Elevation at (x, y): [`blended_elevation`], each map's σ scaled by the snapshot's calibration
+/// ([`super::calibration`]) before the two are mixed (mean and variance of the mixture, which
+/// counts their disagreement as uncertainty).
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
-    match raw_elevation(snapshot, x, y) {
-        Some(a) => {
-            let source = match a.by {
-                Answerer::Window(_) => Source::Window,
-                Answerer::Aggregate => Source::Aggregate,
-            };
-            let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
-            ElevationItem {
-                z_m: Some(a.estimate.z),
-                z_var_m2: Some(a.estimate.var * s * s),
-                source,
-                observed: true,
-            }
-        }
-        None => ElevationItem {
+    let Some((first, second)) = blended_elevation(snapshot, x, y) else {
+        return ElevationItem {
             z_m: None,
             z_var_m2: None,
             source: Source::None,
             observed: false,
-        },
+        };
+    };
+    let source = match first.by {
+        Answerer::Window(_) => Source::Window,
+        Answerer::Aggregate => Source::Aggregate,
+    };
+    let calibrated = |a: &RawAnswer| {
+        let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
+        (a.estimate.z, a.estimate.var * s * s)
+    };
+    let (z1, v1) = calibrated(&first);
+    let (z, var) = match second {
+        None => (z1, v1),
+        Some((other, w)) => {
+            let (z2, v2) = calibrated(&other);
+            let z = (1.0 - w) * z1 + w * z2;
+            let second_moment = (1.0 - w) * (v1 + z1 * z1) + w * (v2 + z2 * z2);
+            (z, (second_moment - z * z).max(0.0))
+        }
+    };
+    ElevationItem {
+        z_m: Some(z),
+        z_var_m2: Some(var),
+        source,
+        observed: true,
     }
 }
 
@@ -204,4 +231,113 @@ pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> 
             })
             .collect()
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::test_support::{params, scan_of};
+    use crate::map::Window;
+    use rand::{Rng, SeedableRng};
+
+    /// A window of seed-000 maps along a wander path over the crater terrain, and the path.
+    fn crater_window(scans: usize) -> (MapSnapshot, Vec<nalgebra::Isometry3<f64>>) {
+        let spec = rangegp_sim::family::family()
+            .into_iter()
+            .find(|t| t.name == "craters")
+            .expect("family terrain");
+        let terrain = spec.build(1, 60.0);
+        let preset = rangegp_sim::ScannerPreset::seed000();
+        let path = rangegp_sim::Path::wander(5, &terrain, scans, 0.5, 0.25);
+        let mut window = Window::new(16);
+        let mut poses = Vec::new();
+        for i in 0..scans {
+            let pose = path.pose(&terrain, i, preset.mount_height_m);
+            let mut scan = scan_of(&terrain, pose);
+            scan.sequence = i as u64 + 1;
+            window.push(Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit")));
+            poses.push(pose);
+        }
+        (window.snapshot(), poses)
+    }
+
+    #[test]
+    fn a_micrometre_move_of_the_query_point_never_moves_the_answer_by_a_millimetre() {
+        let (snapshot, poses) = crater_window(8);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let (mut both, mut jumps, mut worst) = (0, 0, 0.0f64);
+        for _ in 0..10_000 {
+            let pose = poses[rng.random_range(0..poses.len())];
+            let (r, a) = (rng.random_range(0.5..9.0), rng.random_range(-1.5..1.5));
+            let p = pose * nalgebra::Point3::new(r * f64::cos(a), r * f64::sin(a), 0.0);
+            let d = rng.random_range(0.0..std::f64::consts::TAU);
+            let (x, y) = (p.x + 1e-6 * d.cos(), p.y + 1e-6 * d.sin());
+            let (Some(z0), Some(z1)) = (elevation(&snapshot, p.x, p.y).z_m, elevation(&snapshot, x, y).z_m)
+            else {
+                continue;
+            };
+            both += 1;
+            worst = worst.max((z1 - z0).abs());
+            if (z1 - z0).abs() > 1e-3 {
+                jumps += 1;
+            }
+        }
+        assert!(both > 5_000, "only {both} answered");
+        assert_eq!(
+            jumps, 0,
+            "{jumps} of {both} answers jumped by > 1 mm (worst {worst} m)"
+        );
+    }
+
+    #[test]
+    fn where_the_nearest_map_changes_the_answer_blends_instead_of_stepping() {
+        // Two scanners side by side, 1 m apart, both looking along +x over the craters: the
+        // nearest map changes on the line y = 0.5 ahead of them.
+        let terrain = rangegp_sim::family::family()
+            .into_iter()
+            .find(|t| t.name == "craters")
+            .expect("family terrain")
+            .build(1, 60.0);
+        let mut window = Window::new(4);
+        for (k, y) in [0.0, 1.0].into_iter().enumerate() {
+            let z = terrain.height(0.0, y).expect("on the terrain") + 0.75;
+            let pose = nalgebra::Isometry3::translation(0.0, y, z);
+            let mut scan = scan_of(&terrain, pose);
+            scan.sequence = k as u64 + 1;
+            window.push(Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit")));
+        }
+        let snapshot = window.snapshot();
+        let (m0, m1) = (&snapshot.maps()[0], &snapshot.maps()[1]);
+        // Where on that line, 2–9 m ahead, the two maps disagree most.
+        let x = (20..=90)
+            .map(|k| k as f64 / 10.0)
+            .filter_map(|x| {
+                let (a, b) = (m0.elevation(x, 0.5)?, m1.elevation(x, 0.5)?);
+                Some(((a.z - b.z).abs(), x))
+            })
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .expect("both maps see ahead")
+            .1;
+        let middle = nalgebra::Vector2::new(x, 0.5);
+        let along = nalgebra::Vector2::new(0.0, 1.0);
+        let (mut switched, mut worst_raw, mut worst) = (false, 0.0f64, 0.0f64);
+        let mut last: Option<(RawAnswer, f64)> = None;
+        for k in -300..=300 {
+            let p = middle + along * (k as f64 * 1e-3);
+            let raw = raw_elevation(&snapshot, p.x, p.y).expect("answered");
+            let z = elevation(&snapshot, p.x, p.y).z_m.expect("answered");
+            if let Some((prev, prev_z)) = last {
+                switched |= prev.by != raw.by;
+                worst_raw = worst_raw.max((raw.estimate.z - prev.estimate.z).abs());
+                worst = worst.max((z - prev_z).abs());
+            }
+            last = Some((raw, z));
+        }
+        assert!(switched, "the walk never changed the nearest map");
+        assert!(
+            worst_raw > 1e-3,
+            "the maps agree to {worst_raw} m here: the test proves nothing"
+        );
+        assert!(worst < 5e-4, "a 1 mm step moved the answer by {worst} m");
+    }
 }
