@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 
 def main() -> int:

@@ -123,12 +123,14 @@ mod tests {
                     z_var_m2: Some(1e-4),
                     source: Source::Window,
                     observed: true,
+                    refusal: None,
                 },
                 ElevationItem {
                     z_m: None,
                     z_var_m2: None,
                     source: Source::None,
                     observed: false,
+                    refusal: Some(Refusal::Unobserved),
                 },
             ],
         }

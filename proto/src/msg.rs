@@ -24,6 +24,17 @@ pub enum Source {
     None,
 }
 
+/// Why a point got no value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Refusal {
+    /// No map saw the point (outside every field of view, or in a shadow).
+    Unobserved,
+    /// A map answered, but with σ above the daemon's bound (`query.max_sigma_m`): it knows too
+    /// little there to give a number.
+    TooUncertain,
+}
+
 /// One elevation answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ElevationItem {
@@ -35,6 +46,8 @@ pub struct ElevationItem {
     pub source: Source,
     /// True when the point lies inside the field of view the answering map observed.
     pub observed: bool,
+    /// Why there is no value (`None` when there is one).
+    pub refusal: Option<Refusal>,
 }
 
 /// Elevation answers, one per request point.
@@ -62,6 +75,8 @@ pub struct VarianceItem {
     pub z_var_m2: Option<f64>,
     /// Which map answered.
     pub source: Source,
+    /// Why there is no value (`None` when there is one).
+    pub refusal: Option<Refusal>,
 }
 
 /// Variance answers, one per request point.

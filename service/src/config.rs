@@ -277,6 +277,9 @@ pub struct QueryConfig {
     /// A batch query that waited longer than this for a worker is answered `overloaded`,
     /// milliseconds.
     pub queue_deadline_ms: u64,
+    /// Elevation and variance answers whose σ exceeds this are refused `too_uncertain`
+    /// rather than given as a number, metres.
+    pub max_sigma_m: f64,
 }
 
 impl Default for Config {
@@ -361,6 +364,7 @@ impl Default for QueryConfig {
             max_ray_range_m: 200.0,
             threads: 2,
             queue_deadline_ms: 500,
+            max_sigma_m: 1.0,
         }
     }
 }
@@ -444,6 +448,9 @@ impl Config {
         }
         if self.query.queue_deadline_ms == 0 {
             return bad("query.queue_deadline_ms must be positive");
+        }
+        if !positive(self.query.max_sigma_m) {
+            return bad("query.max_sigma_m must be a positive number of metres");
         }
         if self.query.max_batch == 0 || self.query.threads == 0 || !positive(self.query.max_ray_range_m) {
             return bad("query.max_batch, query.threads and query.max_ray_range_m must be positive");

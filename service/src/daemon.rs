@@ -128,7 +128,9 @@ impl Daemon {
         let world = restored.map(|r| Arc::new(r.world));
         let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(ServerState {
-            snapshot: ArcSwap::from_pointee(MapSnapshot::new(Vec::new(), world.clone())),
+            snapshot: ArcSwap::from_pointee(
+                MapSnapshot::new(Vec::new(), world.clone()).with_max_sigma(config.query.max_sigma_m),
+            ),
             metrics: Arc::clone(&metrics),
             keys: config.keys(),
             max_batch: config.query.max_batch,
@@ -390,7 +392,10 @@ fn fit_loop(
                 let before = state.snapshot.load_full();
                 let map = Arc::new(map);
                 window.push(Arc::clone(&map));
-                let maps = window.snapshot().with_scales(before.scales);
+                let maps = window
+                    .snapshot()
+                    .with_scales(before.scales)
+                    .with_max_sigma(before.max_sigma_m);
                 state
                     .snapshot
                     .rcu(|old| maps.with_aggregate(old.aggregate.clone()));

@@ -5,7 +5,7 @@ use super::local::HeightEstimate;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
-use rangegp_proto::msg::{ElevationItem, Ray, RayItem, Source, VarianceItem};
+use rangegp_proto::msg::{ElevationItem, Ray, RayItem, Refusal, Source, VarianceItem};
 use std::sync::Arc;
 
 /// How many of the nearest window maps are asked per query point (the least uncertain wins).
@@ -119,15 +119,19 @@ fn blended_elevation(
 
 /// Elevation at (x, y): [`blended_elevation`], each map's σ scaled by the snapshot's calibration
 /// ([`super::calibration`]) before the two are mixed (mean and variance of the mixture, which
-/// counts their disagreement as uncertainty).
+/// counts their disagreement as uncertainty). An answer whose σ exceeds the snapshot's
+/// `max_sigma_m` is refused `too_uncertain`: a number that wide would claim knowledge the maps do
+/// not have.
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
+    let refused = |observed: bool, refusal: Refusal| ElevationItem {
+        z_m: None,
+        z_var_m2: None,
+        source: Source::None,
+        observed,
+        refusal: Some(refusal),
+    };
     let Some((first, second)) = blended_elevation(snapshot, x, y) else {
-        return ElevationItem {
-            z_m: None,
-            z_var_m2: None,
-            source: Source::None,
-            observed: false,
-        };
+        return refused(false, Refusal::Unobserved);
     };
     let source = match first.by {
         Answerer::Window(_) => Source::Window,
@@ -147,11 +151,20 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
             (z, (second_moment - z * z).max(0.0))
         }
     };
+    // A NaN variance is refused too: `is_some_and` is false for it.
+    let within = var
+        .sqrt()
+        .partial_cmp(&snapshot.max_sigma_m)
+        .is_some_and(|o| o.is_le());
+    if !within {
+        return refused(true, Refusal::TooUncertain);
+    }
     ElevationItem {
         z_m: Some(z),
         z_var_m2: Some(var),
         source,
         observed: true,
+        refusal: None,
     }
 }
 
@@ -164,6 +177,7 @@ pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
     VarianceItem {
         z_var_m2: e.z_var_m2,
         source: e.source,
+        refusal: e.refusal,
     }
 }
 
@@ -339,5 +353,25 @@ mod tests {
             "the maps agree to {worst_raw} m here: the test proves nothing"
         );
         assert!(worst < 5e-4, "a 1 mm step moved the answer by {worst} m");
+    }
+
+    #[test]
+    fn an_answer_wider_than_the_bound_is_refused_as_too_uncertain_and_unseen_ground_as_unobserved() {
+        let (snapshot, poses) = crater_window(4);
+        let ahead = poses[3] * nalgebra::Point3::new(3.0, 0.5, 0.0);
+        let answered = elevation(&snapshot, ahead.x, ahead.y);
+        let sd = answered.z_var_m2.expect("answered").sqrt();
+        assert_eq!(answered.refusal, None);
+        let bounded = snapshot.clone().with_max_sigma(0.5 * sd);
+        let refused = elevation(&bounded, ahead.x, ahead.y);
+        assert_eq!((refused.z_m, refused.z_var_m2), (None, None));
+        assert_eq!(refused.refusal, Some(Refusal::TooUncertain));
+        assert!(refused.observed);
+        assert_eq!(
+            variance(&bounded, ahead.x, ahead.y).refusal,
+            Some(Refusal::TooUncertain)
+        );
+        let far = elevation(&snapshot, ahead.x + 500.0, ahead.y);
+        assert_eq!((far.refusal, far.observed), (Some(Refusal::Unobserved), false));
     }
 }

@@ -53,7 +53,7 @@ impl Window {
 }
 
 /// What a query sees: the window's maps and the aggregate at one instant; swapped atomically.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct MapSnapshot {
     maps: Vec<Arc<LocalRangeMap>>,
     /// Each map's sensor x, y and maximum range, in `maps`' order: the search for the nearest
@@ -64,6 +64,14 @@ pub struct MapSnapshot {
     pub aggregate: Option<Arc<WorldAggregate>>,
     /// Factors on the maps' σ, learnt from the scans that followed them.
     pub scales: SigmaScales,
+    /// Answers with a larger σ (after the scales) are refused as too uncertain, metres.
+    pub max_sigma_m: f64,
+}
+
+impl Default for MapSnapshot {
+    fn default() -> Self {
+        Self::new(Vec::new(), None)
+    }
 }
 
 impl MapSnapshot {
@@ -81,6 +89,7 @@ impl MapSnapshot {
             reach,
             aggregate,
             scales: SigmaScales::default(),
+            max_sigma_m: f64::INFINITY,
         }
     }
 
@@ -91,7 +100,14 @@ impl MapSnapshot {
             reach: self.reach.clone(),
             aggregate,
             scales: self.scales,
+            max_sigma_m: self.max_sigma_m,
         }
+    }
+
+    /// The same snapshot with another bound on σ (`query.max_sigma_m`).
+    pub fn with_max_sigma(mut self, max_sigma_m: f64) -> Self {
+        self.max_sigma_m = max_sigma_m;
+        self
     }
 
     /// The same maps and aggregate with other σ scales.
