@@ -17,7 +17,17 @@ fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
     })?;
     let json = serde_json::to_value(&report)?;
     for key in [
-        "terrain", "sensor", "band", "source", "n", "rmse", "cov68", "cov95", "cov99", "nlpd",
+        "terrain",
+        "sensor",
+        "band",
+        "source",
+        "n",
+        "rmse",
+        "cov68",
+        "cov95",
+        "cov99",
+        "nlpd",
+        "reliability",
     ] {
         anyhow::ensure!(
             json["cells"]

@@ -119,6 +119,37 @@ pub fn quick_regressions(report: &CalibrationReport) -> Vec<String> {
     out
 }
 
+/// Probability levels of the central intervals in each cell's reliability curve.
+pub const RELIABILITY_LEVELS: [f64; 11] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99];
+
+/// Each level of [`RELIABILITY_LEVELS`] with the share of `samples` whose error lies inside the
+/// central interval of that probability, mean ± Φ⁻¹((1 + level) / 2) σ.
+fn reliability(samples: &[Sample]) -> Vec<[f64; 2]> {
+    let z: Vec<f64> = samples.iter().map(|s| (s.truth - s.mean).abs() / s.sd).collect();
+    RELIABILITY_LEVELS
+        .iter()
+        .map(|&level| {
+            let k = normal_quantile(0.5 * (1.0 + level));
+            let inside = z.iter().filter(|&&v| v <= k).count();
+            [level, inside as f64 / z.len().max(1) as f64]
+        })
+        .collect()
+}
+
+/// Φ⁻¹(p) for p in (0, 1), by bisection on the normal CDF (to 1e-12).
+fn normal_quantile(p: f64) -> f64 {
+    let (mut lo, mut hi) = (-40.0, 40.0);
+    while hi - lo > 1e-12 {
+        let mid = 0.5 * (lo + hi);
+        if crate::map::local::normal_cdf(mid) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// Sizes and settings of a run.
 #[derive(Debug, Clone)]
 pub struct CalibrationOptions {
@@ -161,6 +192,9 @@ pub struct Cell {
     pub nlpd: f64,
     /// Area under the sparsification error curve, metres.
     pub ause: f64,
+    /// The reliability curve: for each central interval of [`RELIABILITY_LEVELS`], the share of
+    /// errors inside it (calibrated: equal to the level).
+    pub reliability: Vec<[f64; 2]>,
 }
 
 impl Cell {
@@ -181,6 +215,7 @@ impl Cell {
             cov99: f64::NAN,
             nlpd: f64::NAN,
             ause: f64::NAN,
+            reliability: Vec::new(),
         }
     }
 }
@@ -246,6 +281,7 @@ pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
                         cov99: s.coverage99,
                         nlpd: s.nlpd,
                         ause: s.ause,
+                        reliability: reliability(&bin.samples),
                     });
                 }
             }
@@ -460,5 +496,35 @@ pub fn print_calibration(report: &CalibrationReport) {
             c.cov99,
             c.nlpd
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_gaussian_sample_has_a_diagonal_reliability_curve_and_a_too_narrow_sigma_falls_below_it() {
+        let n = 4000;
+        let errors: Vec<f64> = (0..n)
+            .map(|i| normal_quantile((i as f64 + 0.5) / n as f64))
+            .collect();
+        let sample = |sd: f64| -> Vec<Sample> {
+            errors
+                .iter()
+                .map(|&e| Sample {
+                    mean: 0.0,
+                    sd,
+                    truth: e,
+                })
+                .collect()
+        };
+        for [level, share] in reliability(&sample(1.0)) {
+            assert!((share - level).abs() < 2e-3, "level {level}: {share}");
+        }
+        for [level, share] in reliability(&sample(0.5)) {
+            assert!(share < level - 0.01, "level {level}: {share}");
+        }
+        assert!((normal_quantile(0.975) - 1.959964).abs() < 1e-5);
     }
 }
