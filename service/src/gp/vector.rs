@@ -451,6 +451,8 @@ mod tests {
     #[test]
     fn vector_exp_is_within_two_ulp_of_libm() {
         if !avx2_fma() {
+            // Nothing to check: this CPU runs the portable path, which libm's exp backs.
+            eprintln!("skipped: this CPU has no AVX2 + FMA, so the vector exp never runs here");
             return;
         }
         use std::arch::x86_64::*;
