@@ -16,6 +16,7 @@ use crate::config::Config;
 use crate::ingest::validate::{validate, ValidationLimits};
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::calibration::Calibrator;
+use crate::map::local::normal_quantile;
 use crate::map::{query, LocalRangeMap, MapSnapshot, Window};
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
@@ -134,20 +135,6 @@ fn reliability(samples: &[Sample]) -> Vec<[f64; 2]> {
             [level, inside as f64 / z.len().max(1) as f64]
         })
         .collect()
-}
-
-/// Φ⁻¹(p) for p in (0, 1), by bisection on the normal CDF (to 1e-12).
-fn normal_quantile(p: f64) -> f64 {
-    let (mut lo, mut hi) = (-40.0, 40.0);
-    while hi - lo > 1e-12 {
-        let mid = 0.5 * (lo + hi);
-        if crate::map::local::normal_cdf(mid) < p {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
 }
 
 /// Sizes and settings of a run.

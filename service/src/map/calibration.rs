@@ -64,6 +64,12 @@ impl Default for BinScale {
 }
 
 impl BinScale {
+    /// How wide these scales make σ (the factor at σ = 1 mm), to choose between two equally
+    /// near fills of an empty cell.
+    fn width(&self) -> f64 {
+        self.factor(1e-3)
+    }
+
     /// The factor on an answer of standard deviation `sd`. Below the surest group's median the
     /// calibrated σ stays at that group's (the map is never trusted to be surer than the surest
     /// answers the scans tested); above the widest group's, that group's factor holds.
@@ -190,6 +196,7 @@ impl Calibrator {
     }
 
     /// Residuals held, window then aggregate, by range bin (all grazing classes).
+    #[cfg(test)]
     pub fn counts(&self) -> ([usize; BINS], [usize; BINS]) {
         let count = |r: &Residuals| std::array::from_fn(|b| r.iter().map(|c| c[b].len()).sum());
         (count(&self.window), count(&self.aggregate))
@@ -334,7 +341,8 @@ fn coprime_stride(n: usize) -> usize {
 /// neighbours' interpolation toward 1 nor answers with the map's raw σ.
 fn table_of(residuals: &Residuals) -> ScaleTable {
     let rows: Vec<Option<[BinScale; BINS]>> = residuals.iter().map(row_of).collect();
-    std::array::from_fn(|c| nearest_filled(&rows, c).unwrap_or_default())
+    let width = |row: &[BinScale; BINS]| row.iter().map(BinScale::width).sum::<f64>();
+    std::array::from_fn(|c| nearest_filled(&rows, c, width).unwrap_or_default())
 }
 
 /// One grazing class's scales by range bin, gaps filled from the nearest bin; `None` when no
@@ -347,36 +355,20 @@ fn row_of(bins: &[VecDeque<Residual>; BINS]) -> Option<[BinScale; BINS]> {
     learnt
         .iter()
         .any(Option::is_some)
-        .then(|| std::array::from_fn(|k| nearest_filled(&learnt, k).unwrap_or_default()))
+        .then(|| std::array::from_fn(|k| nearest_filled(&learnt, k, BinScale::width).unwrap_or_default()))
 }
 
-/// `items[k]` if present, else the nearest present one (the wider, at σ = 1 mm, of two as near).
-fn nearest_filled<T: Copy + Widest>(items: &[Option<T>], k: usize) -> Option<T> {
+/// `items[k]` if present, else the nearest present one (of two as near, the one `width` calls
+/// wider).
+fn nearest_filled<T: Copy>(items: &[Option<T>], k: usize, width: impl Fn(&T) -> f64) -> Option<T> {
     (0..items.len()).find_map(|d| {
         let below = k.checked_sub(d).and_then(|i| items[i]);
         let above = items.get(k + d).copied().flatten();
         match (below, above) {
-            (Some(a), Some(b)) => Some(if a.width() >= b.width() { a } else { b }),
+            (Some(a), Some(b)) => Some(if width(&a) >= width(&b) { a } else { b }),
             (a, b) => a.or(b),
         }
     })
-}
-
-/// How wide a set of scales makes σ, to choose between two equally near fills.
-trait Widest {
-    fn width(&self) -> f64;
-}
-
-impl Widest for BinScale {
-    fn width(&self) -> f64 {
-        self.factor(1e-3)
-    }
-}
-
-impl Widest for [BinScale; BINS] {
-    fn width(&self) -> f64 {
-        self.iter().map(|b| b.factor(1e-3)).sum()
-    }
 }
 
 /// The scales of one bin: its residuals sorted by the answer's σ, cut into [`SIGMA_GROUPS`]
@@ -388,20 +380,17 @@ fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
     if sorted.is_empty() {
         return out;
     }
-    let groups = if sorted.len() >= SIGMA_GROUPS * MIN_RESIDUALS {
-        SIGMA_GROUPS
-    } else {
-        1
-    };
+    let group = |g: &[Residual]| (0.5 * g[g.len() / 2].var.ln(), scale_of(g));
+    if sorted.len() < SIGMA_GROUPS * MIN_RESIDUALS {
+        // One group: every slot holds the whole bin's scale.
+        let (log_sd, scale) = group(&sorted);
+        out.log_sd = [log_sd; SIGMA_GROUPS];
+        out.scale = [scale; SIGMA_GROUPS];
+        return out;
+    }
+    let n = sorted.len();
     for k in 0..SIGMA_GROUPS {
-        // With one group, every slot holds the same (whole-bin) scale.
-        let g = if groups == 1 {
-            &sorted[..]
-        } else {
-            &sorted[k * sorted.len() / groups..(k + 1) * sorted.len() / groups]
-        };
-        out.log_sd[k] = 0.5 * g[g.len() / 2].var.ln();
-        out.scale[k] = scale_of(g);
+        (out.log_sd[k], out.scale[k]) = group(&sorted[k * n / SIGMA_GROUPS..(k + 1) * n / SIGMA_GROUPS]);
     }
     out
 }
@@ -455,7 +444,7 @@ fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{params, scan_of};
+    use crate::map::test_support::{family_terrain, params, scan_of};
     use crate::map::Window;
     use nalgebra::{Isometry3, Translation3, UnitQuaternion};
     use rangegp_sim::Heightmap;
@@ -493,11 +482,7 @@ mod tests {
     fn on_rough_terrain_the_next_scans_teach_a_sigma_that_covers_the_truth() {
         // Rough fBm relief (p95 slope 16°) and maps without their own leave-one-out calibration:
         // their σ is the kernel's, far too sure of this ground.
-        let spec = rangegp_sim::family::family()
-            .into_iter()
-            .find(|t| t.name == "fbm-h05-16deg")
-            .expect("family terrain");
-        let terrain = spec.build(7, 40.0);
+        let terrain = family_terrain("fbm-h05-16deg", 7, 40.0);
         let preset = rangegp_sim::ScannerPreset::seed000();
         let path = rangegp_sim::Path::wander(3, &terrain, 12, 0.5, 0.2);
         let mut window = Window::new(16);
@@ -614,7 +599,7 @@ mod tests {
         (0..n)
             .map(|i| {
                 let u = (i as f64 + 0.5) / n as f64;
-                let z = inverse_normal(u);
+                let z = crate::map::local::normal_quantile(u);
                 Residual {
                     r2: (sd * z).powi(2),
                     var,
@@ -623,19 +608,6 @@ mod tests {
                 }
             })
             .collect()
-    }
-
-    fn inverse_normal(u: f64) -> f64 {
-        let (mut lo, mut hi) = (-10.0, 10.0);
-        for _ in 0..80 {
-            let mid = 0.5 * (lo + hi);
-            if crate::map::local::normal_cdf(mid) < u {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        0.5 * (lo + hi)
     }
 
     #[test]

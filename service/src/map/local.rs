@@ -556,6 +556,20 @@ fn unit(inclination: f64, azimuth: f64) -> Vector3<f64> {
     Vector3::new(x, y, z)
 }
 
+/// Φ⁻¹(p) for p in (0, 1): bisection on [`normal_cdf`] to 1e-12 (as accurate as that CDF).
+pub fn normal_quantile(p: f64) -> f64 {
+    let (mut lo, mut hi) = (-40.0, 40.0);
+    while hi - lo > 1e-12 {
+        let mid = 0.5 * (lo + hi);
+        if normal_cdf(mid) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// Standard normal CDF (Abramowitz–Stegun 7.1.26 erf, |error| < 1.5e-7).
 pub fn normal_cdf(x: f64) -> f64 {
     let z = x.abs() / std::f64::consts::SQRT_2;

@@ -2,6 +2,7 @@
 
 use super::aggregate::Aggregate;
 use super::local::HeightEstimate;
+use super::tiles::smoothstep;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
@@ -64,7 +65,7 @@ pub const BLEND_M: f64 = 0.1;
 /// vertical line ended behind the surface; that test flickered near the lowest ring and moved
 /// 1.4 % of answers by over 1 mm, up to 4 cm, under 1 µm moves of the query point).
 pub fn raw_elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> Option<RawAnswer> {
-    blended_elevation(snapshot, x, y).map(|(primary, _)| primary)
+    search(snapshot, x, y, false).map(|(primary, _)| primary)
 }
 
 /// [`raw_elevation`] and, when the next map that answers has its sensor less than [`BLEND_M`]
@@ -75,6 +76,16 @@ fn blended_elevation(
     snapshot: &MapSnapshot,
     x: f64,
     y: f64,
+) -> Option<(RawAnswer, Option<(RawAnswer, f64)>)> {
+    search(snapshot, x, y, true)
+}
+
+/// The map search behind [`raw_elevation`] and, with `blend`, [`blended_elevation`].
+fn search(
+    snapshot: &MapSnapshot,
+    x: f64,
+    y: f64,
+    blend: bool,
 ) -> Option<(RawAnswer, Option<(RawAnswer, f64)>)> {
     let rho = |i: usize| {
         snapshot
@@ -91,12 +102,11 @@ fn blended_elevation(
     for (i, m) in nearest(snapshot, x, y) {
         if let Some(first) = &best {
             let gap = rho(i) - first.rho_m;
-            if gap >= BLEND_M {
+            if !blend || gap >= BLEND_M {
                 break;
             }
             if let Some(e) = m.elevation(x, y) {
-                let t = (gap / BLEND_M).clamp(0.0, 1.0);
-                let weight = 0.5 * (1.0 - t * t * (3.0 - 2.0 * t));
+                let weight = 0.5 * (1.0 - smoothstep(gap / BLEND_M));
                 return Some((*first, Some((window(i, e), weight))));
             }
         } else if let Some(e) = m.elevation(x, y) {
@@ -250,17 +260,13 @@ pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{params, scan_of};
+    use crate::map::test_support::{family_terrain, params, scan_of};
     use crate::map::Window;
     use rand::{Rng, SeedableRng};
 
     /// A window of seed-000 maps along a wander path over the crater terrain, and the path.
     fn crater_window(scans: usize) -> (MapSnapshot, Vec<nalgebra::Isometry3<f64>>) {
-        let spec = rangegp_sim::family::family()
-            .into_iter()
-            .find(|t| t.name == "craters")
-            .expect("family terrain");
-        let terrain = spec.build(1, 60.0);
+        let terrain = family_terrain("craters", 1, 60.0);
         let preset = rangegp_sim::ScannerPreset::seed000();
         let path = rangegp_sim::Path::wander(5, &terrain, scans, 0.5, 0.25);
         let mut window = Window::new(16);
@@ -307,11 +313,7 @@ mod tests {
     fn where_the_nearest_map_changes_the_answer_blends_instead_of_stepping() {
         // Two scanners side by side, 1 m apart, both looking along +x over the craters: the
         // nearest map changes on the line y = 0.5 ahead of them.
-        let terrain = rangegp_sim::family::family()
-            .into_iter()
-            .find(|t| t.name == "craters")
-            .expect("family terrain")
-            .build(1, 60.0);
+        let terrain = family_terrain("craters", 1, 60.0);
         let mut window = Window::new(4);
         for (k, y) in [0.0, 1.0].into_iter().enumerate() {
             let z = terrain.height(0.0, y).expect("on the terrain") + 0.75;

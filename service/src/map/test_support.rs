@@ -24,6 +24,15 @@ pub(crate) fn params() -> MapParams {
     }
 }
 
+/// The terrain of the sim family called `name`, built from `seed` over `size_m` × `size_m`.
+pub(crate) fn family_terrain(name: &str, seed: u64, size_m: f64) -> Heightmap {
+    rangegp_sim::family::family()
+        .into_iter()
+        .find(|t| t.name == name)
+        .unwrap_or_else(|| panic!("no terrain {name} in the sim family"))
+        .build(seed, size_m)
+}
+
 /// A noisy seed-000 scan of `terrain` from `pose` (returns only).
 pub(crate) fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
     let preset = ScannerPreset::seed000();

@@ -121,7 +121,8 @@ fn ramp(x: f64, lo: f64, w: f64, m: f64, open_low: bool, open_high: bool) -> f64
     up * down
 }
 
-fn smoothstep(t: f64) -> f64 {
+/// 0 below 0, 1 above 1, and 3t² − 2t³ between: a ramp with zero slope at both ends.
+pub(crate) fn smoothstep(t: f64) -> f64 {
     let t = t.clamp(0.0, 1.0);
     t * t * (3.0 - 2.0 * t)
 }
