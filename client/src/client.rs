@@ -1,10 +1,10 @@
 //! Typed Zenoh client: one method per query, each bounded by a timeout.
 
-use crate::transport::{zenoh_config, TransportConfigError};
 use rangegp_proto::codec::{self, CodecError, Encoding};
 use rangegp_proto::keys::{InvalidMapId, MapKeys, QueryKind};
 use rangegp_proto::msg::*;
 use rangegp_proto::PROTOCOL_VERSION;
+use rangegp_transport::{zenoh_config, TransportConfigError};
 use serde::{de::DeserializeOwned, Serialize};
 use std::time::{Duration, Instant};
 use thiserror::Error;
@@ -254,7 +254,7 @@ impl Client {
             .session
             .get(key)
             .payload(payload)
-            .encoding(crate::transport::zenoh_encoding(encoding))
+            .encoding(rangegp_transport::zenoh_encoding(encoding))
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .wait()
@@ -313,7 +313,7 @@ impl Client {
             .session
             .get(key)
             .payload(payload)
-            .encoding(crate::transport::zenoh_encoding(self.encoding))
+            .encoding(rangegp_transport::zenoh_encoding(self.encoding))
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .await

@@ -1,26 +1,28 @@
-//! rangegp-service: range-based GP maps fitted to LiDAR scans and served over Zenoh.
+//! rangegp-service: the rangegp daemon. Range-based GP maps fitted to LiDAR scans taken from
+//! iceoryx2 shared memory, answered over Zenoh.
 //!
+//! - [`scan`]: what a scan is inside the daemon, and why one is refused.
 //! - [`gp`]: kernels, range sphere, Cholesky with jitter, exact GP regression.
-//! - [`map`]: local range maps, the window, query evaluation.
+//! - [`map`]: local range maps, the window, the aggregate, σ calibration, query evaluation.
 //! - [`ingest`]: the iceoryx2 subscriber thread and scan validation.
+//! - [`state`]: what every thread shares (snapshot, counters, query settings).
 //! - [`server`]: Zenoh queryables and the query worker pool.
 //! - [`checkpoint`]: durable, atomic, checksummed checkpoints of the aggregate.
-//! - [`daemon`]: wiring of the above.
-//! - [`config`], [`metrics`]: TOML configuration, counters, latencies, the Prometheus exporter.
-//! - [`priority`]: background threads yield to the latency-critical ones.
-//! - [`demo`], [`plot`]: the self-contained demo and its pictures.
+//! - [`exporter`]: Prometheus metrics over HTTP.
+//! - [`daemon`]: starts and stops the threads of the above.
+//! - [`config`], [`metrics`]: TOML configuration, counters and latencies.
+//! - [`priority`], [`shutdown`]: background threads yield; one stop signal for all.
 
-pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod daemon;
-pub mod demo;
-pub mod eval;
+pub mod exporter;
 pub mod gp;
 pub mod ingest;
 pub mod map;
 pub mod metrics;
-pub use rangegp_client::plot;
 pub mod priority;
+pub mod scan;
 pub mod server;
-mod sleep;
+pub mod shutdown;
+pub mod state;

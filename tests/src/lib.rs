@@ -4,13 +4,13 @@
 pub mod child;
 
 use anyhow::{bail, Result};
-use rangegp_client::scangen::ScanGenerator;
-use rangegp_client::transport::free_loopback_endpoint;
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::scangen::ScanGenerator;
 use rangegp_proto::msg::StatusReply;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_sim::ScannerPreset;
+use rangegp_transport::free_loopback_endpoint;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
@@ -55,7 +55,7 @@ impl Harness {
         config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
         config.metrics.listen = "127.0.0.1:0".into();
         tweak(&mut config);
-        let daemon = Daemon::start(&config)?;
+        let daemon = Daemon::builder(config.clone()).start()?;
         let client = Client::builder(&config.map_id)
             .connect([endpoint.clone()])
             .timeout(WAIT)

@@ -1,7 +1,7 @@
 //! The aggregate inside the daemon: a place only an evicted scan saw is still answered, from
 //! the aggregate, close to the ground truth; a place nobody saw is not.
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::Source;
 use rangegp_tests::{rms, world, Harness, WAIT};
 use std::time::Instant;

@@ -5,12 +5,12 @@
 //! resident set at idle. Its own binary, so no other test's memory is counted.
 
 use anyhow::{Context, Result};
-use rangegp_client::scangen::now_ns;
-use rangegp_client::transport::{zenoh_config, zenoh_encoding};
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::Encoding;
 use rangegp_proto::keys::{MapKeys, QueryKind};
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{env_count, world, Harness, WAIT};
+use rangegp_transport::{zenoh_config, zenoh_encoding};
 use std::time::Duration;
 use zenoh::Wait;
 

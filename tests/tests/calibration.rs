@@ -5,8 +5,8 @@
 //! self-calibration brought them (`quick_regressions`; the matrix without the prequential
 //! calibration fails it, as the second test checks).
 
+use rangegp_lab::eval::calibration::{quick_regressions, run_calibration, CalibrationOptions, BANDS};
 use rangegp_service::config::Config;
-use rangegp_service::eval::calibration::{quick_regressions, run_calibration, CalibrationOptions, BANDS};
 
 #[test]
 fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {

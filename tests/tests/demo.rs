@@ -1,7 +1,7 @@
 //! The demo (daemon + rover over iceoryx2 + planner over Zenoh) meets its accuracy bars and
 //! writes its summary and pictures. A reduced run of `rangegpd demo`.
 
-use rangegp_service::demo::{run, DemoOptions};
+use rangegp_lab::demo::{run, DemoOptions};
 
 #[test]
 fn demo_meets_its_accuracy_bars_and_writes_its_outputs() -> anyhow::Result<()> {

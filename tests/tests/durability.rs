@@ -9,9 +9,8 @@
 
 use anyhow::{ensure, Context, Result};
 use rand::{Rng, SeedableRng};
-use rangegp_client::scangen::{now_ns, GeneratedScan};
-use rangegp_client::transport::free_loopback_endpoint;
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::scangen::{now_ns, GeneratedScan};
 use rangegp_proto::msg::{MapUpdate, Source};
 use rangegp_proto::scan::ScanHeader;
 use rangegp_service::checkpoint::{self, Store};
@@ -23,6 +22,7 @@ use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, WAIT};
+use rangegp_transport::free_loopback_endpoint;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -40,7 +40,7 @@ fn temp_dir(name: &str) -> Result<PathBuf> {
 fn child_daemon() -> Result<()> {
     let Some(path) = child::args() else { return Ok(()) };
     let config = Config::load(Path::new(&path))?;
-    let _daemon = Daemon::start(&config)?;
+    let _daemon = Daemon::builder(config.clone()).start()?;
     child::say("ready");
     loop {
         std::thread::sleep(Duration::from_secs(3600));

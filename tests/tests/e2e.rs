@@ -1,7 +1,7 @@
 //! End-to-end: scans in over iceoryx2, queries out over Zenoh, against ground truth.
 
 use nalgebra::Vector3;
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{Ray, Source};
 use rangegp_tests::{rms, world, Harness};
 

@@ -2,7 +2,7 @@
 //! at reduced sizes) must meet the quick bars derived from the full run (docs/EVALUATION.md), so a
 //! regression in map quality fails the build.
 
-use rangegp_service::eval::{run, EvalOptions, Experiment};
+use rangegp_lab::eval::{run, EvalOptions, Experiment};
 
 #[test]
 fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {

@@ -1,7 +1,7 @@
 //! GP engine acceptance in reduced form: online hyperparameters against per-scan optima on
 //! random seed-000 scans (the full 100-scan run is `rangegp-bench hyper`).
 
-use rangegp_service::bench::hyper::{run_hyper, HyperOptions};
+use rangegp_lab::bench::hyper::{run_hyper, HyperOptions};
 
 #[test]
 fn online_hyperparameters_track_the_batch_optimum() -> anyhow::Result<()> {

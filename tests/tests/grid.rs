@@ -2,7 +2,7 @@
 //! whole, agree with single-point elevation queries and with the ground truth, and bad boxes get
 //! their error codes.
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::{ErrorCode, Source};
 use rangegp_tests::{error_code, rms, world, Harness};

@@ -4,7 +4,7 @@
 //!
 //! `RANGEGP_STORM=<n>` sets how many of each (default 10 000, as the acceptance asks).
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN};
 use rangegp_tests::{env_count, ping_pong, world, Harness, WAIT};

@@ -4,7 +4,7 @@
 //! subscriber that counts them.
 
 use anyhow::Result;
-use rangegp_client::scangen::{now_ns, GeneratedScan};
+use rangegp_lab::scangen::{now_ns, GeneratedScan};
 use rangegp_proto::scan::ScanHeader;
 use rangegp_tests::{ping_pong, world, Harness};
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -3,8 +3,8 @@
 //! checkpoint directory.
 
 use anyhow::{ensure, Result};
-use rangegp_client::scangen::{now_ns, GeneratedScan};
 use rangegp_client::ScanPublisher;
+use rangegp_lab::scangen::{now_ns, GeneratedScan};
 use rangegp_proto::msg::{ElevationItem, Source, StatusReply};
 use rangegp_proto::scan::ScanHeader;
 use rangegp_proto::PROTOCOL_VERSION;

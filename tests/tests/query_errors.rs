@@ -1,6 +1,6 @@
 //! Bad requests get a `reply_err` with the right code, in the request's encoding.
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{ElevationReply, ElevationRequest, ErrorCode, Ray};

@@ -1,6 +1,6 @@
 //! Malformed scans are rejected, counted by reason, and change nothing that was accepted.
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::scan::{ScanHeader, ScanPoint};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_tests::{world, Harness};

@@ -4,11 +4,11 @@
 //! signed by the right CA but not listed, get none.
 
 use anyhow::{Context, Result};
-use rangegp_client::transport::free_loopback_endpoint;
 use rangegp_client::{Client, ClientError};
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_tests::{unique_id, WAIT};
+use rangegp_transport::free_loopback_endpoint;
 use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -101,7 +101,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
     config.metrics.listen = String::new();
     config.zenoh.config_file = Some(daemon_config);
-    let daemon = Daemon::start(&config)?;
+    let daemon = Daemon::builder(config.clone()).start()?;
     let map_id = config.map_id.clone();
 
     let allowed = planner(&dir, &port, &map_id, "planner")?;

@@ -2,7 +2,7 @@
 //! claim, elevation and variance answers come back refused `too_uncertain` (observed, no value),
 //! never as a number; ground no map saw is refused `unobserved`.
 
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{Refusal, Source};
 use rangegp_tests::{world, Harness};
 

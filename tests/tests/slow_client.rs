@@ -7,15 +7,15 @@
 //! with the frozen client's replies undelivered to the p99 alone, are printed (`--nocapture`).
 
 use anyhow::{Context, Result};
-use rangegp_client::scangen::now_ns;
-use rangegp_client::transport::{zenoh_config, zenoh_encoding};
 use rangegp_client::Client;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::{MapKeys, QueryKind};
 use rangegp_proto::msg::GridRequest;
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{world, Harness, WAIT};
+use rangegp_transport::{zenoh_config, zenoh_encoding};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 

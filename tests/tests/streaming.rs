@@ -2,8 +2,8 @@
 //! latencies / aggregate / RSS, the Prometheus endpoint, the echo baseline, a bounded aggregate,
 //! and `rangegp load` in a reduced form.
 
-use rangegp_client::load::{self, LoadOptions};
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::load::{self, LoadOptions};
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{MapUpdate, Source};
 use rangegp_sim::ScannerPreset;
 use rangegp_tests::{unique_id, world, Harness, WAIT};
@@ -96,7 +96,7 @@ fn the_aggregate_forgets_what_lies_beyond_its_radius() -> anyhow::Result<()> {
     })?;
     let mut publisher = h.publisher(6)?;
     // Scans 3 m apart: the path leaves the first scans' tiles more than 12 m behind.
-    let mut w = rangegp_client::scangen::ScanGenerator::new(2, 60.0, ScannerPreset::seed000(), 10, 3.0);
+    let mut w = rangegp_lab::scangen::ScanGenerator::new(2, 60.0, ScannerPreset::seed000(), 10, 3.0);
     let [x0, y0, heading0] = w.path.waypoints[0];
     let ahead = [x0 + 3.0 * heading0.cos(), y0 + 3.0 * heading0.sin()];
     let mut seen_early = None;

@@ -5,7 +5,7 @@
 
 use anyhow::Result;
 use iceoryx2::prelude::*;
-use rangegp_client::scangen::now_ns;
+use rangegp_lab::scangen::now_ns;
 use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint, SCAN_SERVICE_MAX_SUBSCRIBERS};
 use rangegp_tests::{world, Harness};
 

@@ -1,12 +1,11 @@
-//! `rangegpd`: the rangegp daemon (`run`), its self-contained demo (`demo`), its defaults, and
-//! the deliberate reset of its checkpoints.
+//! `rangegpd`: the rangegp daemon (`run`), its defaults, a check of a configuration, and the
+//! deliberate reset of its checkpoints. The demo is the lab's (`rangegp demo`).
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use rangegp_service::checkpoint::Store;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
-use rangegp_service::demo::{self, DemoOptions};
 use std::path::PathBuf;
 use tracing_subscriber::EnvFilter;
 
@@ -28,10 +27,13 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
     },
-    /// Daemon + simulated rover (iceoryx2) + simulated planner (Zenoh), all on loopback.
-    Demo(DemoOptions),
     /// Print the default configuration as TOML.
     DefaultConfig,
+    /// Parse and validate a configuration without starting anything; the first bad field is named.
+    CheckConfig {
+        /// TOML configuration to check.
+        config: PathBuf,
+    },
     /// Delete every checkpoint generation of the configured directory (stop the daemon first):
     /// the one deliberate way to replace a mapped area with an empty map.
     ResetCheckpoints {
@@ -43,13 +45,8 @@ enum Command {
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
-    let default_level = if matches!(cli.command, Command::Demo(_)) {
-        "warn"
-    } else {
-        "info"
-    };
     tracing_subscriber::fmt()
-        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default_level)))
+        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")))
         .with_writer(std::io::stderr)
         .init();
     match cli.command {
@@ -63,7 +60,7 @@ fn main() -> Result<()> {
                 signal_hook::consts::SIGTERM,
             ])
             .context("installing signal handlers")?;
-            let daemon = Daemon::start(&config)?;
+            let daemon = Daemon::builder(config.clone()).start()?;
             notify_systemd(&[sd_notify::NotifyState::Ready]);
             if let Some(sig) = signals.forever().next() {
                 tracing::info!(signal = sig, "shutting down");
@@ -71,11 +68,12 @@ fn main() -> Result<()> {
             notify_systemd(&[sd_notify::NotifyState::Stopping]);
             daemon.shutdown();
         }
-        Command::Demo(opts) => {
-            let summary = demo::run(&opts)?;
-            demo::print_table(&summary, &opts.out);
-        }
         Command::DefaultConfig => print!("{}", toml::to_string_pretty(&Config::default())?),
+        Command::CheckConfig { config } => {
+            let checked = Config::load(&config)?;
+            checked.validate()?;
+            println!("{}: valid", config.display());
+        }
         Command::ResetCheckpoints { config } => {
             let config = Config::load(&config)?;
             let dir = config

@@ -1,20 +1,16 @@
-//! The checkpoint thread: writes the published aggregate whenever it changed, at most once per
-//! interval, and once more at shutdown. Disk errors are counted and logged; ingest, fitting and
-//! queries never wait for the disk.
+//! The checkpoint writer: writes the published aggregate when it changed since the last write.
+//! Disk errors are counted and logged; ingest, fitting and queries never wait for the disk.
 
 use super::{encode, identity, Checkpoint, Store};
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
-use crate::priority::{lower_current_thread, Background};
-use crate::server::ServerState;
-use crate::sleep::sleep_until;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
-use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use crate::state::DaemonState;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use tracing::{debug, info_span, warn};
 
-/// Writes the aggregate of a [`ServerState`] when it changed since the last write.
+/// Writes the aggregate of a [`DaemonState`] when it changed since the last write.
 #[derive(Debug)]
 pub struct Writer {
     store: Store,
@@ -39,7 +35,7 @@ impl Writer {
     }
 
     /// Writes the published aggregate if it is not the one written last.
-    pub fn write_if_changed(&mut self, state: &ServerState) {
+    pub fn write_if_changed(&mut self, state: &DaemonState) {
         let Some(world) = state.snapshot.load().aggregate.clone() else {
             return;
         };
@@ -87,26 +83,4 @@ impl Writer {
             }
         }
     }
-}
-
-/// Starts the checkpoint thread; it stops when `shutdown` is set (the daemon then calls
-/// [`Writer::write_if_changed`] once more after the aggregate thread has finished).
-pub fn spawn(
-    writer: Arc<Mutex<Writer>>,
-    state: Arc<ServerState>,
-    interval: Duration,
-    shutdown: Arc<AtomicBool>,
-) -> std::io::Result<JoinHandle<()>> {
-    std::thread::Builder::new()
-        .name("rangegp-checkpoint".into())
-        .spawn(move || {
-            lower_current_thread(Background::Idle);
-            while !shutdown.load(Ordering::Relaxed) {
-                sleep_until(Instant::now() + interval, &shutdown);
-                writer
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .write_if_changed(&state);
-            }
-        })
 }

@@ -9,7 +9,7 @@ pub mod validate;
 
 pub use queue::LatestQueue;
 
-use crate::map::ScanInput;
+use crate::scan::ScanInput;
 use std::time::Instant;
 
 /// A validated scan on its way to the fitter, with when it was taken from shared memory.
@@ -22,4 +22,4 @@ pub struct Arrival {
 }
 pub use plausibility::PoseLimits;
 pub use subscriber::{spawn_ingest, IngestError, IngestHandle};
-pub use validate::{RejectReason, ValidationLimits};
+pub use validate::ValidationLimits;

@@ -1,7 +1,7 @@
 //! Per-source sequence bookkeeping: refuses replays, tells lost scans from restarts, and never
 //! locks a source out (every difference is taken with checked arithmetic).
 
-use super::validate::RejectReason;
+use crate::scan::RejectReason;
 use std::collections::HashMap;
 
 /// Who sent a scan: the header's publisher id and the iceoryx2 port it came through. A driver

@@ -4,13 +4,15 @@
 use super::plausibility::{PoseGate, PoseLimits, PoseVerdict};
 use super::queue::LatestQueue;
 use super::sequence::{SequenceCheck, SequenceTracker, Source};
-use super::validate::{check_header, validate, RejectReason, ValidationLimits};
+use super::validate::{check_header, validate, ValidationLimits};
 use super::Arrival;
 use crate::metrics::throttle::Throttle;
 use crate::metrics::Metrics;
+use crate::scan::RejectReason;
+use crate::shutdown::Shutdown;
 use iceoryx2::prelude::*;
 use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -103,7 +105,7 @@ pub fn spawn_ingest(
     settings: IngestSettings,
     queue: Arc<LatestQueue<Arrival>>,
     metrics: Arc<Metrics>,
-    shutdown: Arc<AtomicBool>,
+    shutdown: Shutdown,
 ) -> Result<IngestHandle, IngestError> {
     let (ready_tx, ready_rx) = mpsc::sync_channel(1);
     let thread = std::thread::Builder::new()
@@ -130,7 +132,7 @@ pub fn spawn_ingest(
 fn open_with_retry(
     settings: &IngestSettings,
     metrics: &Metrics,
-    shutdown: &AtomicBool,
+    shutdown: &Shutdown,
     ready: mpsc::SyncSender<Result<(), IngestError>>,
 ) -> Option<Intake> {
     let mut ready = Some(ready);
@@ -158,8 +160,7 @@ fn open_with_retry(
                 return None;
             }
         }
-        crate::sleep::sleep_until(std::time::Instant::now() + wait, shutdown);
-        if shutdown.load(Ordering::Relaxed) {
+        if shutdown.sleep_until(Instant::now() + wait) {
             return None;
         }
         wait = (wait * 2).min(settings.max_retry_interval);
@@ -215,10 +216,10 @@ impl Intake {
         settings: &IngestSettings,
         queue: &LatestQueue<Arrival>,
         metrics: &Metrics,
-        shutdown: &AtomicBool,
+        shutdown: &Shutdown,
     ) {
         let mut last_cleanup = Instant::now();
-        while !shutdown.load(Ordering::Relaxed) {
+        while !shutdown.is_triggered() {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
                     let received = Instant::now();

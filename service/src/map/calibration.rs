@@ -13,8 +13,9 @@
 use super::local::HeightEstimate;
 use super::query::{self, Answerer};
 use super::window::MapSnapshot;
-use super::{LocalRangeMap, ScanInput};
+use super::LocalRangeMap;
 use crate::gp::sphere;
+use crate::scan::ScanInput;
 use nalgebra::Vector3;
 use rangegp_proto::msg::Source;
 use std::collections::VecDeque;

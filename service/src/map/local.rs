@@ -6,39 +6,10 @@ use super::prior::Prior;
 use super::root;
 use super::tiles::{TiledGp, Tiling, TrainingRay};
 use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
+use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
 use std::f64::consts::FRAC_PI_2;
 use thiserror::Error;
-
-/// One returned ray of a validated scan, in the sensor frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RayObservation {
-    /// Polar angle from the sensor's +z axis, radians.
-    pub inclination: f64,
-    /// Azimuth, radians.
-    pub azimuth: f64,
-    /// Measured range, metres.
-    pub range: f64,
-}
-
-/// A validated scan in private memory: what the ingest hands to fitting.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ScanInput {
-    /// Publisher that sent it.
-    pub publisher_id: u64,
-    /// Its per-publisher sequence number.
-    pub sequence: u64,
-    /// Acquisition time, ns since the Unix epoch.
-    pub stamp_ns: u64,
-    /// Sensor frame in the map frame.
-    pub pose: Isometry3<f64>,
-    /// Sensor maximum range, metres.
-    pub max_range_m: f64,
-    /// Range noise σ per metre of range.
-    pub range_noise_per_m: f64,
-    /// Returned rays.
-    pub rays: Vec<RayObservation>,
-}
 
 /// Which prior mean to build a map with.
 #[derive(Debug, Clone, Copy, PartialEq)]

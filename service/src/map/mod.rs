@@ -14,6 +14,6 @@ mod test_support;
 pub mod tiles;
 pub mod window;
 
-pub use local::{FitError, LocalRangeMap, ScanInput};
+pub use local::{FitError, LocalRangeMap};
 pub use prior::Prior;
 pub use window::{MapSnapshot, Window};

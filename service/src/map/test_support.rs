@@ -1,8 +1,9 @@
 //! Shared fixtures of the map tests: the seed-000 map parameters and a simulated scan.
 
-use super::local::{MapParams, PriorKind, RangeTarget, RayObservation, ScanInput};
+use super::local::{MapParams, PriorKind, RangeTarget};
 use super::tiles::Tiling;
 use crate::gp::{JitterPolicy, Kernel};
+use crate::scan::{RayObservation, ScanInput};
 use nalgebra::Isometry3;
 use rand::SeedableRng;
 use rangegp_sim::{simulate_scan, Heightmap, ScannerPreset};

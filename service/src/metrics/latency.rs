@@ -3,7 +3,6 @@
 //! histogram of every sample for scraping.
 
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
-use rangegp_client::stats::percentile;
 use rangegp_proto::msg::LatencySummary;
 use std::collections::VecDeque;
 use std::sync::{Mutex, PoisonError};
@@ -67,6 +66,16 @@ impl Latency {
     }
 }
 
+/// Nearest-rank percentile `q` ∈ [0, 1] of `v` (sorted in place), `None` when `v` is empty.
+pub fn percentile(v: &mut [f64], q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let rank = (q * v.len() as f64).ceil() as usize;
+    Some(v[rank.clamp(1, v.len()) - 1])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -89,5 +98,14 @@ mod tests {
         assert!((s.p50_ms - 52.0).abs() < 2.0, "{s:?}");
         assert_eq!(s.max_ms, 1000.0);
         assert!(s.p90_ms < 100.5, "{s:?}");
+    }
+
+    #[test]
+    fn nearest_rank() {
+        let mut v = [4.0, 2.0, 3.0, 1.0];
+        assert_eq!(percentile(&mut v, 0.5), Some(2.0));
+        assert_eq!(percentile(&mut v, 0.99), Some(4.0));
+        assert_eq!(percentile(&mut v, 0.0), Some(1.0));
+        assert_eq!(percentile(&mut [], 0.5), None);
     }
 }

@@ -1,10 +1,9 @@
 //! Counters and latencies the status query reports and Prometheus scrapes; shared by all threads.
 
 pub mod latency;
-pub mod prometheus;
 pub mod throttle;
 
-use crate::ingest::validate::RejectReason;
+use crate::scan::RejectReason;
 pub use latency::Latency;
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{QueryLatencies, RejectionCount};

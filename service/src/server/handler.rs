@@ -1,6 +1,6 @@
 //! One request end to end: decode, check version and limits, evaluate, encode.
 
-use super::ServerState;
+use super::DaemonState;
 use crate::map::aggregate::Aggregate;
 use crate::map::query;
 use rangegp_proto::codec::{self, Encoding};
@@ -41,7 +41,7 @@ pub fn answer(
     endpoint: Endpoint,
     encoding: Encoding,
     payload: &[u8],
-    state: &ServerState,
+    state: &DaemonState,
 ) -> Result<Vec<u8>, Failure> {
     // Debug level: at the daemon's default `info`, a span formatted on every query cost more
     // than a tenth of a single-point answer (docs/ARCHITECTURE.md); `RUST_LOG=debug` shows it.
@@ -107,7 +107,7 @@ pub fn answer(
 }
 
 /// The layers of a validated grid request: cell centres evaluated like elevation queries.
-fn grid(req: &GridRequest, state: &ServerState) -> Result<GridReply, Failure> {
+fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
     let Some((cols, rows)) = req.shape() else {
         return fail(
             ErrorCode::InvalidArgument,
@@ -180,7 +180,7 @@ fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, Failur
         .or_else(|e| fail(ErrorCode::Internal, format!("cannot encode the reply: {e}")))
 }
 
-fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
+fn snapshot(state: &DaemonState) -> Result<std::sync::Arc<crate::map::MapSnapshot>, Failure> {
     let snap = state.snapshot.load_full();
     // A restarted daemon answers from its restored aggregate before the first new scan.
     if snap.maps().is_empty() && snap.aggregate.as_ref().is_none_or(|a| a.is_empty()) {
@@ -189,7 +189,7 @@ fn snapshot(state: &ServerState) -> Result<std::sync::Arc<crate::map::MapSnapsho
     Ok(snap)
 }
 
-fn check_batch(len: usize, state: &ServerState) -> Result<(), Failure> {
+fn check_batch(len: usize, state: &DaemonState) -> Result<(), Failure> {
     if len > state.max_batch {
         return fail(
             ErrorCode::BatchTooLarge,
@@ -199,7 +199,7 @@ fn check_batch(len: usize, state: &ServerState) -> Result<(), Failure> {
     Ok(())
 }
 
-fn check_points(points: &[[f64; 2]], state: &ServerState) -> Result<(), Failure> {
+fn check_points(points: &[[f64; 2]], state: &DaemonState) -> Result<(), Failure> {
     check_batch(points.len(), state)?;
     match points.iter().position(|p| !p[0].is_finite() || !p[1].is_finite()) {
         Some(i) => fail(ErrorCode::InvalidArgument, format!("point {i} is not finite")),
@@ -207,7 +207,7 @@ fn check_points(points: &[[f64; 2]], state: &ServerState) -> Result<(), Failure>
     }
 }
 
-fn check_ray(i: usize, r: &Ray, state: &ServerState) -> Result<(), Failure> {
+fn check_ray(i: usize, r: &Ray, state: &DaemonState) -> Result<(), Failure> {
     let finite = r.origin_m.iter().chain(&r.direction).all(|v| v.is_finite());
     let norm = r.direction.iter().map(|v| v * v).sum::<f64>().sqrt();
     if !finite || norm < 1e-9 {
@@ -226,7 +226,7 @@ fn check_ray(i: usize, r: &Ray, state: &ServerState) -> Result<(), Failure> {
     Ok(())
 }
 
-fn status(state: &ServerState) -> StatusReply {
+fn status(state: &DaemonState) -> StatusReply {
     let m = &state.metrics;
     let snap = state.snapshot.load();
     StatusReply {

@@ -7,53 +7,23 @@
 pub mod handler;
 pub mod reply;
 
-use crate::gp::Kernel;
-use crate::map::MapSnapshot;
-use crate::metrics::Metrics;
-use arc_swap::ArcSwap;
+use crate::state::DaemonState;
 use handler::Endpoint;
-use rangegp_client::transport::protocol_encoding;
 use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
-use rangegp_proto::keys::{MapKeys, QueryKind};
+use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{ErrorCode, ErrorReply};
 use rangegp_proto::PROTOCOL_VERSION;
+use rangegp_transport::protocol_encoding;
 use reply::{Outcome, ReplySender};
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 use thiserror::Error;
 use tracing::{info, warn};
 use zenoh::query::Query;
 use zenoh::Wait;
-
-/// What the query side reads: the current snapshot, counters and limits.
-#[derive(Debug)]
-pub struct ServerState {
-    /// Current maps, swapped atomically by the fitter.
-    pub snapshot: ArcSwap<MapSnapshot>,
-    /// Shared counters.
-    pub metrics: Arc<Metrics>,
-    /// Map id served.
-    pub keys: MapKeys,
-    /// Largest batch accepted.
-    pub max_batch: usize,
-    /// Longest ray accepted, metres.
-    pub max_ray_range_m: f64,
-    /// Threads for one large batch.
-    pub batch_threads: usize,
-    /// Window capacity (for status).
-    pub window_capacity: usize,
-    /// Kernel the fitter uses now (updated by online learning).
-    pub kernel: Arc<ArcSwap<Kernel>>,
-    /// Noise variance added to every training ray (for status).
-    pub nugget_m2: f64,
-    /// Eviction radius of the aggregate when it is enabled (for status).
-    pub aggregate_radius_m: Option<f64>,
-    /// Longest wait of a batch query for a worker before it is answered `overloaded`.
-    pub queue_deadline: Duration,
-}
 
 /// The server could not start.
 #[derive(Debug, Error)]
@@ -95,7 +65,7 @@ impl QueryServer {
     /// `queue_len` pending queries.
     pub fn start(
         session: &zenoh::Session,
-        state: Arc<ServerState>,
+        state: Arc<DaemonState>,
         workers: usize,
         queue_len: usize,
     ) -> Result<Self, ServerError> {
@@ -201,7 +171,7 @@ impl Drop for QueryServer {
     }
 }
 
-fn worker(receiver: &Mutex<Receiver<Job>>, state: &ServerState, replies: &ReplySender) {
+fn worker(receiver: &Mutex<Receiver<Job>>, state: &DaemonState, replies: &ReplySender) {
     crate::priority::lower_current_thread(crate::priority::Background::Batch);
     loop {
         let job = receiver.lock().unwrap_or_else(PoisonError::into_inner).recv();
@@ -251,7 +221,7 @@ fn request_encoding(query: &Query) -> Encoding {
 
 /// Answers one query (reading its payload in place, refusing it before any copy when it is
 /// over the limit) and records its latency; returns the reply to send.
-fn serve(endpoint: Endpoint, query: &Query, state: &ServerState) -> (Encoding, Outcome) {
+fn serve(endpoint: Endpoint, query: &Query, state: &DaemonState) -> (Encoding, Outcome) {
     let started = Instant::now();
     let encoding = request_encoding(query);
     let size = query.payload().map_or(0, |p| p.len());

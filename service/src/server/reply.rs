@@ -11,8 +11,8 @@
 //! they then time out); docs/OPERATIONS.md "Queries under load".
 
 use crate::metrics::Metrics;
-use rangegp_client::transport::zenoh_encoding;
 use rangegp_proto::codec::Encoding;
+use rangegp_transport::zenoh_encoding;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use tracing::{debug, warn};

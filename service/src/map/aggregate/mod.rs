@@ -8,8 +8,9 @@
 pub mod pose_gp;
 pub mod world;
 
-use super::local::{HeightEstimate, LocalRangeMap, ScanInput};
+use super::local::{HeightEstimate, LocalRangeMap};
 use crate::gp::CholeskyError;
+use crate::scan::ScanInput;
 use thiserror::Error;
 
 /// Why a scan could not be folded into an aggregate.

@@ -5,9 +5,10 @@
 
 use super::{Aggregate, AggregateError};
 use crate::gp::{sphere, ExactGp, JitterPolicy, Kernel};
-use crate::map::local::{HeightEstimate, LocalRangeMap, ScanInput};
+use crate::map::local::{HeightEstimate, LocalRangeMap};
 use crate::map::prior::Prior;
 use crate::map::root;
+use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
 
 /// Kernel input: R·u (3), position (3), R·(cos γ, sin γ) (2).

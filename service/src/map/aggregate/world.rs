@@ -11,7 +11,8 @@
 use super::{Aggregate, AggregateError};
 use crate::gp::{JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
-use crate::map::local::{HeightEstimate, LocalRangeMap, ScanInput};
+use crate::map::local::{HeightEstimate, LocalRangeMap};
+use crate::scan::ScanInput;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap, VecDeque};

@@ -2,7 +2,7 @@
 
 use anyhow::Result;
 use clap::Parser;
-use rangegp_service::eval::{run, EvalOptions};
+use rangegp_lab::eval::{run, EvalOptions};
 
 fn main() -> Result<()> {
     let opts = EvalOptions::parse();

@@ -215,8 +215,8 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
 /// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
 fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
     let config = match &opts.config {
-        Some(path) => crate::config::Config::load(path)?,
-        None => crate::config::Config::default(),
+        Some(path) => rangegp_service::config::Config::load(path)?,
+        None => rangegp_service::config::Config::default(),
     };
     let report = calibration::run_calibration(&calibration::CalibrationOptions {
         quick: opts.quick,

@@ -1,5 +1,7 @@
-//! Zenoh configuration from plain settings (mode, endpoints, scouting), and the Zenoh labels
+//! rangegp-transport: the Zenoh glue both ends share. Zenoh configuration from plain settings (mode, endpoints, scouting), and the Zenoh labels
 //! of the protocol's encodings.
+
+#![deny(missing_docs)]
 
 use rangegp_proto::codec::Encoding;
 use std::sync::LazyLock;
@@ -36,12 +38,13 @@ pub fn protocol_encoding(label: &zenoh::bytes::Encoding) -> Encoding {
 
 /// A Zenoh configuration could not be built.
 #[derive(Debug, Error)]
-#[error("invalid zenoh setting {key}: {reason}")]
+#[error("invalid zenoh setting {key}")]
 pub struct TransportConfigError {
     /// Configuration key.
     pub key: String,
-    /// Zenoh's reason.
-    pub reason: String,
+    /// Zenoh's error.
+    #[source]
+    pub source: zenoh::Error,
 }
 
 /// Builds a Zenoh configuration: `mode` (peer / client / router), endpoints to listen on and
@@ -56,9 +59,9 @@ pub fn zenoh_config(
     let set = |config: &mut zenoh::Config, key: &str, value: String| {
         config
             .insert_json5(key, &value)
-            .map_err(|e| TransportConfigError {
+            .map_err(|source| TransportConfigError {
                 key: key.to_owned(),
-                reason: e.to_string(),
+                source,
             })
     };
     let list = |v: &[String]| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());

@@ -12,18 +12,18 @@
 
 use super::progress;
 use super::scores::{Sample, Scores};
-use crate::config::Config;
-use crate::ingest::validate::{validate, ValidationLimits};
-use crate::map::aggregate::world::{WorldAggregate, WorldParams};
-use crate::map::calibration::Calibrator;
-use crate::map::local::normal_quantile;
-use crate::map::{query, LocalRangeMap, MapSnapshot, Window};
+use crate::scangen::to_message;
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use rangegp_client::scangen::to_message;
 use rangegp_proto::msg::Source;
+use rangegp_service::config::Config;
+use rangegp_service::ingest::validate::{validate, ValidationLimits};
+use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
+use rangegp_service::map::calibration::Calibrator;
+use rangegp_service::map::local::normal_quantile;
+use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, simulate_scan, Heightmap, Path, ScannerPreset, TerrainSpec};
 use rayon::prelude::*;

@@ -1,16 +1,17 @@
 //! Online against batch hyperparameters on random seed-000 scans (seed 000 §IV protocol: 20 %
 //! of each scan's returns train, optimiser started at σ² = 2.5, ℓ = 0.15).
 
-use crate::config::Config;
 use crate::eval::scores::MeanSd;
 use crate::eval::split::{random_pose, split_scan};
-use crate::gp::hyper::{fit_hyperparameters, HyperBounds};
-use crate::gp::likelihood::TrainingSet;
-use crate::gp::Kernel;
-use crate::map::local::{hyper_sample, ScanInput};
 use anyhow::Result;
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
+use rangegp_service::config::Config;
+use rangegp_service::gp::hyper::{fit_hyperparameters, HyperBounds};
+use rangegp_service::gp::likelihood::TrainingSet;
+use rangegp_service::gp::Kernel;
+use rangegp_service::map::local::hyper_sample;
+use rangegp_service::scan::ScanInput;
 use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;

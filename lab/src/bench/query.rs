@@ -2,14 +2,14 @@
 //! of seed-000 maps (and the world aggregate), on one thread — the cost behind a round trip.
 
 use super::gp::scans;
-use crate::config::Config;
-use crate::map::aggregate::world::{WorldAggregate, WorldParams};
-use crate::map::aggregate::Aggregate;
-use crate::map::{query, LocalRangeMap, Window};
 use anyhow::Result;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Ray;
+use rangegp_service::config::Config;
+use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
+use rangegp_service::map::aggregate::Aggregate;
+use rangegp_service::map::{query, LocalRangeMap, Window};
 use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;

@@ -1,15 +1,16 @@
 //! `rangegp-bench gp`: the GP engine's speed on this machine, with numpy / scikit-learn peers
 //! measured in the same run when a Python with them is available. Medians, not single runs.
 
-use crate::config::Config;
-use crate::gp::{factor_with_jitter, sphere, ExactGp, JitterPolicy, Kernel};
-use crate::ingest::validate::{validate, ValidationLimits};
-use crate::map::local::{embedding_of, hyper_sample, LocalRangeMap, MapParams, ScanInput};
+use crate::scangen::to_message;
 use anyhow::{Context, Result};
 use faer::Mat;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use rangegp_client::scangen::to_message;
+use rangegp_service::config::Config;
+use rangegp_service::gp::{factor_with_jitter, sphere, ExactGp, JitterPolicy, Kernel};
+use rangegp_service::ingest::validate::{validate, ValidationLimits};
+use rangegp_service::map::local::{embedding_of, hyper_sample, LocalRangeMap, MapParams};
+use rangegp_service::scan::ScanInput;
 use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -270,14 +271,14 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
         })
         .collect();
     let exact_s = median(&mut exact_t);
-    let tiled_rays: Vec<crate::map::tiles::TrainingRay> = sample
+    let tiled_rays: Vec<rangegp_service::map::tiles::TrainingRay> = sample
         .inputs
         .iter()
         .zip(&sample.targets)
         .zip(&sample.noise_var)
         .map(|((x, &r), &v)| {
             let (inclination, azimuth) = sphere::angles_of(*x);
-            crate::map::tiles::TrainingRay {
+            rangegp_service::map::tiles::TrainingRay {
                 inclination,
                 azimuth,
                 residual: r,
@@ -288,7 +289,7 @@ pub fn run_gp(opts: &GpBenchOptions) -> Result<GpReport> {
     let mut tiled_t: Vec<f64> = (0..repeats)
         .map(|_| {
             time(|| {
-                let gp = crate::map::tiles::TiledGp::fit(
+                let gp = rangegp_service::map::tiles::TiledGp::fit(
                     &tiled_rays,
                     params.kernel,
                     embedding,

@@ -1,11 +1,13 @@
-//! `rangegp`: query a rangegp daemon and drive it with simulated scans.
+//! `rangegp`: the lab's command line. The demo, queries to a rangegp daemon, and simulated
+//! scans and load to drive it.
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
-use rangegp_client::load::{self, LoadOptions};
-use rangegp_client::plot::{save_heatmap, Raster};
-use rangegp_client::scangen::{now_ns, ScanGenerator};
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::demo::{self, DemoOptions};
+use rangegp_lab::load::{self, LoadOptions};
+use rangegp_lab::plot::{save_heatmap, Raster};
+use rangegp_lab::scangen::{now_ns, ScanGenerator};
 use rangegp_proto::msg::{GridReply, Ray};
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
@@ -13,7 +15,7 @@ use std::time::{Duration, Instant};
 #[derive(Parser)]
 #[command(
     version,
-    about = "Query a rangegp daemon over Zenoh; publish simulated scans over iceoryx2"
+    about = "The rangegp lab: the demo, queries to a rangegp daemon over Zenoh, simulated scans over iceoryx2"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -49,6 +51,9 @@ impl Connection {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The daemon on embedded defaults with a simulated rover (iceoryx2) and planner (Zenoh), all
+    /// in this process on loopback; writes OUT/summary.json and pictures.
+    Demo(DemoOptions),
     /// Print the daemon's counters as JSON.
     Status(Connection),
     /// Run one query and print the reply as JSON.
@@ -190,6 +195,10 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Demo(opts) => {
+            let summary = demo::run(&opts)?;
+            demo::print_table(&summary, &opts.out);
+        }
         Command::Status(c) => println!("{}", serde_json::to_string_pretty(&c.open()?.status()?)?),
         Command::Query { connection, kind } => {
             let client = connection.open()?;

@@ -1,14 +1,15 @@
-//! Prometheus text exposition of [`super::Metrics`] on a loopback HTTP port (`GET /metrics`).
+//! The metrics exporter: Prometheus text exposition of [`crate::metrics::Metrics`] on a loopback HTTP port (`GET /metrics`).
 //!
 //! Counters are read from the daemon's own atomics and sizes from the current snapshot at scrape
 //! time (the same sources as `status`, no second bookkeeping); latencies are the histograms kept beside the status rings.
 //! `prometheus-client` (the Prometheus project's Rust client) does the encoding; `tiny_http`
 //! serves it from one small thread, independent of the async runtime and of the query workers.
 
-use super::{rss_mb, Latency, PublisherCounts};
-use crate::ingest::validate::RejectReason;
 use crate::map::aggregate::Aggregate;
-use crate::server::ServerState;
+use crate::metrics::{rss_mb, Latency, PublisherCounts};
+use crate::scan::RejectReason;
+use crate::shutdown::Shutdown;
+use crate::state::DaemonState;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
 use prometheus_client::metrics::counter::ConstCounter;
@@ -17,7 +18,7 @@ use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
 use rangegp_proto::keys::QueryKind;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::atomic::Ordering::Relaxed;
 use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -28,13 +29,17 @@ use tracing::{info, warn};
 #[derive(Debug, Error)]
 pub enum ExporterError {
     /// The listen address could not be bound (in use, not local, malformed).
-    #[error("cannot listen for metrics on {addr}: {reason}")]
+    #[error("cannot listen for metrics on {addr}")]
     Bind {
         /// Address asked for.
         addr: String,
-        /// Cause.
-        reason: String,
+        /// Cause (tiny_http's).
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// The listen address is not an IP address (a Unix socket path, say).
+    #[error("cannot listen for metrics on {0}: not an IP address")]
+    NotIp(String),
     /// The serving thread could not be spawned.
     #[error("cannot spawn the metrics thread: {0}")]
     Spawn(#[from] std::io::Error),
@@ -44,7 +49,7 @@ pub enum ExporterError {
 pub struct Exporter {
     server: Arc<tiny_http::Server>,
     addr: SocketAddr,
-    stop: Arc<AtomicBool>,
+    stop: Shutdown,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -57,22 +62,21 @@ impl std::fmt::Debug for Exporter {
 impl Exporter {
     /// Serves the daemon's metrics (counters, and sizes read off the current snapshot) at
     /// `http://<listen>/metrics` (port 0 picks a free port).
-    pub fn start(listen: &str, state: Arc<ServerState>) -> Result<Self, ExporterError> {
-        let bind_err = |reason: String| ExporterError::Bind {
+    pub fn start(listen: &str, state: Arc<DaemonState>) -> Result<Self, ExporterError> {
+        let server = tiny_http::Server::http(listen).map_err(|source| ExporterError::Bind {
             addr: listen.to_owned(),
-            reason,
-        };
-        let server = tiny_http::Server::http(listen).map_err(|e| bind_err(e.to_string()))?;
+            source,
+        })?;
         let addr = server
             .server_addr()
             .to_ip()
-            .ok_or_else(|| bind_err("not an IP address".into()))?;
+            .ok_or_else(|| ExporterError::NotIp(listen.to_owned()))?;
         let server = Arc::new(server);
         let mut registry = Registry::with_prefix("rangegp");
         registry.register_collector(Box::new(DaemonCollector(state)));
-        let stop = Arc::new(AtomicBool::new(false));
+        let stop = Shutdown::new();
         let thread = {
-            let (server, stop) = (Arc::clone(&server), Arc::clone(&stop));
+            let (server, stop) = (Arc::clone(&server), stop.clone());
             std::thread::Builder::new()
                 .name("rangegp-metrics".into())
                 .spawn(move || serve(&server, &registry, &stop))?
@@ -94,7 +98,7 @@ impl Exporter {
 
 impl Drop for Exporter {
     fn drop(&mut self) {
-        self.stop.store(true, Relaxed);
+        self.stop.trigger();
         self.server.unblock();
         if let Some(t) = self.thread.take() {
             let _ = t.join();
@@ -102,8 +106,8 @@ impl Drop for Exporter {
     }
 }
 
-fn serve(server: &tiny_http::Server, registry: &Registry, stop: &AtomicBool) {
-    while !stop.load(Relaxed) {
+fn serve(server: &tiny_http::Server, registry: &Registry, stop: &Shutdown) {
+    while !stop.is_triggered() {
         let request = match server.recv_timeout(Duration::from_millis(200)) {
             Ok(Some(r)) => r,
             Ok(None) => continue,
@@ -136,7 +140,7 @@ const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset
 
 /// Encodes the daemon's metrics on each scrape.
 #[derive(Debug)]
-struct DaemonCollector(Arc<ServerState>);
+struct DaemonCollector(Arc<DaemonState>);
 
 fn counter(enc: &mut DescriptorEncoder, name: &str, help: &str, value: u64) -> std::fmt::Result {
     let c = ConstCounter::new(value);

@@ -9,14 +9,14 @@
 //! fit, publication and the event's Zenoh hop all included).
 
 use crate::scangen::{now_ns, GeneratedScan, ScanGenerator};
-use crate::stats::percentile;
-use crate::{Client, ScanPublisher};
 use anyhow::{bail, Context, Result};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
+use rangegp_client::{Client, ScanPublisher};
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::{ElevationRequest, MapUpdate, Ray, StatusReply};
 use rangegp_proto::PROTOCOL_VERSION;
+use rangegp_service::metrics::latency::percentile;
 use rangegp_sim::ScannerPreset;
 use rayon::prelude::*;
 use serde::Serialize;

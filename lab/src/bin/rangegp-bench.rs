@@ -2,9 +2,9 @@
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
-use rangegp_service::bench::gp::{print_gp, run_gp, GpBenchOptions};
-use rangegp_service::bench::hyper::{print_hyper, run_hyper, HyperOptions};
-use rangegp_service::bench::query::{print_query, run_query, QueryBenchOptions};
+use rangegp_lab::bench::gp::{print_gp, run_gp, GpBenchOptions};
+use rangegp_lab::bench::hyper::{print_hyper, run_hyper, HyperOptions};
+use rangegp_lab::bench::query::{print_query, run_query, QueryBenchOptions};
 
 #[derive(Parser)]
 #[command(

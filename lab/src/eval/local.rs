@@ -5,15 +5,15 @@
 use super::progress;
 use super::scores::{MeanSd, Sample, Scores};
 use super::split::{random_pose, split_scan, SplitScan};
-use crate::gp::hyper::{fit_hyperparameters, HyperBounds, HyperFit};
-use crate::gp::likelihood::TrainingSet;
-use crate::gp::{JitterPolicy, Kernel};
-use crate::map::elevation_gp::ElevationGp;
-use crate::map::local::{hyper_sample, LocalRangeMap, MapParams, PriorKind, RangeTarget};
-use crate::map::tiles::Tiling;
 use anyhow::{Context, Result};
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
+use rangegp_service::gp::hyper::{fit_hyperparameters, HyperBounds, HyperFit};
+use rangegp_service::gp::likelihood::TrainingSet;
+use rangegp_service::gp::{JitterPolicy, Kernel};
+use rangegp_service::map::elevation_gp::ElevationGp;
+use rangegp_service::map::local::{hyper_sample, LocalRangeMap, MapParams, PriorKind, RangeTarget};
+use rangegp_service::map::tiles::Tiling;
 use rangegp_sim::{Heightmap, ScannerPreset};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -86,7 +86,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
         },
         target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
-        variance_calibration: crate::map::tiles::VarianceCalibration::None,
+        variance_calibration: rangegp_service::map::tiles::VarianceCalibration::None,
     }
 }
 

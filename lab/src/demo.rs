@@ -2,18 +2,18 @@
 //! the real iceoryx2 publisher, and a simulated planner querying over real Zenoh (loopback,
 //! scouting off). Ends with a table, `summary.json` and pictures.
 
-use crate::config::Config;
-use crate::daemon::Daemon;
 use crate::plot::{save_heatmap, Raster};
+use crate::scangen::{now_ns, ScanGenerator};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use rangegp_client::scangen::{now_ns, ScanGenerator};
-use rangegp_client::stats::percentile;
-use rangegp_client::transport::free_loopback_endpoint;
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_service::config::Config;
+use rangegp_service::daemon::Daemon;
+use rangegp_service::metrics::latency::percentile;
 use rangegp_sim::ScannerPreset;
+use rangegp_transport::free_loopback_endpoint;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -94,7 +94,9 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
     config.zenoh.listen = vec![endpoint.clone()];
     config.window.capacity = opts.scans;
     config.metrics.listen = "127.0.0.1:0".into();
-    let daemon = Daemon::start(&config).context("starting the daemon")?;
+    let daemon = Daemon::builder(config.clone())
+        .start()
+        .context("starting the daemon")?;
 
     let client = Client::builder(&map_id)
         .connect([endpoint])

@@ -1,10 +1,10 @@
 //! Seed-000 scans for evaluation: cast a scan, keep 20 % of its returns (noisy) for training and
 //! the other 80 % (exact) as held-out test rays with their true hit points.
 
-use crate::map::local::{RayObservation, ScanInput};
 use nalgebra::Isometry3;
 use rand::seq::SliceRandom;
 use rand::Rng;
+use rangegp_service::scan::{RayObservation, ScanInput};
 use rangegp_sim::sensor::direction;
 use rangegp_sim::{simulate_scan, ScannerPreset, Surface};
 

@@ -1,0 +1,17 @@
+//! rangegp-lab: everything around the daemon that does not ship to a robot.
+//!
+//! - [`demo`]: the daemon on embedded defaults with a simulated rover and planner.
+//! - [`eval`]: accuracy and calibration against simulated ground truth (`rangegp-eval`).
+//! - [`bench`]: GP, hyperparameter and query benchmarks (`rangegp-bench`).
+//! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
+//! - [`scangen`]: simulated scans in the wire layout.
+//! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
+
+#![deny(missing_docs)]
+
+pub mod bench;
+pub mod demo;
+pub mod eval;
+pub mod load;
+pub mod plot;
+pub mod scangen;

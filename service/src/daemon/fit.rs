@@ -1,0 +1,135 @@
+//! The fit thread: newest validated scan → local range map → window → published snapshot, then
+//! (off the scan-to-queryable path) σ calibration, the learner's sample and the aggregate's feed.
+
+use super::AggregateFeed;
+use crate::ingest::{Arrival, LatestQueue};
+use crate::map::calibration::Calibrator;
+use crate::map::local::{hyper_sample, HyperSample, MapParams};
+use crate::map::{LocalRangeMap, MapSnapshot, Window};
+use crate::scan::{RejectReason, ScanInput};
+use crate::shutdown::Shutdown;
+use crate::state::DaemonState;
+use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::msg::MapUpdate;
+use rangegp_proto::PROTOCOL_VERSION;
+use rangegp_transport::zenoh_encoding;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tracing::{debug, info_span, warn};
+use zenoh::Wait;
+
+/// Where the fitter sends what it made, besides the window.
+pub(super) struct FitOutputs {
+    /// Hyperparameter samples for the online learner, with the subset size.
+    pub learner: Option<(Arc<LatestQueue<HyperSample>>, usize)>,
+    /// Fitted scans for the aggregate thread.
+    pub aggregate: Option<Arc<AggregateFeed>>,
+    /// Learn σ scales from each next scan (`gp.prequential_calibration`).
+    pub calibrate: bool,
+    /// Where a [`MapUpdate`] goes when a scan's map is published.
+    pub updates: zenoh::pubsub::Publisher<'static>,
+}
+
+/// Fits scans from `queue` until `shutdown`; the window holds `capacity` maps.
+pub(super) fn fit_loop(
+    queue: &LatestQueue<Arrival>,
+    state: &DaemonState,
+    mut params: MapParams,
+    capacity: usize,
+    outputs: FitOutputs,
+    shutdown: &Shutdown,
+) {
+    let mut window = Window::new(capacity);
+    let mut calibrator = outputs.calibrate.then(Calibrator::default);
+    while !shutdown.is_triggered() {
+        let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
+            continue;
+        };
+        let _span = info_span!(
+            "fit",
+            publisher = scan.publisher_id,
+            sequence = scan.sequence,
+            rays = scan.rays.len()
+        )
+        .entered();
+        let started = Instant::now();
+        params.kernel = **state.kernel.load();
+        let map = match LocalRangeMap::fit(&scan, &params) {
+            Ok(map) => Arc::new(map),
+            Err(e) => {
+                state.metrics.reject(RejectReason::FitFailed);
+                warn!(error = %e, "fit failed; scan rejected");
+                continue;
+            }
+        };
+        let fitted = started.elapsed();
+        let m = &state.metrics;
+        m.jittered_tiles
+            .fetch_add(map.jittered_tiles() as u64, Ordering::Relaxed);
+        // The maps as they stood before this scan: what its returns test.
+        let before = state.snapshot.load_full();
+        window.push(Arc::clone(&map));
+        let maps = window
+            .snapshot()
+            .with_scales(before.scales)
+            .with_max_sigma(before.max_sigma_m);
+        state
+            .snapshot
+            .rcu(|old| maps.with_aggregate(old.aggregate.clone()));
+        let latency = received.elapsed();
+        m.fit.record(fitted);
+        m.scan_to_queryable.record(latency);
+        m.accepted.fetch_add(1, Ordering::Relaxed);
+        announce(&outputs.updates, &scan, latency, maps.maps().len());
+        if let Some((samples, subset)) = &outputs.learner {
+            samples.push(hyper_sample(&scan, &params, *subset));
+        }
+        // Off the scan-to-queryable path: the map already answers with the former scales.
+        if let Some(c) = calibrator.as_mut() {
+            let _span = info_span!("calibrate").entered();
+            let calibrating = Instant::now();
+            let answered = c.observe(&before, &scan, &map);
+            let scales = c.scales();
+            state
+                .snapshot
+                .rcu(|old| MapSnapshot::clone(old).with_scales(scales));
+            m.calibrate.record(calibrating.elapsed());
+            debug!(answered, "σ scales updated");
+        }
+        if let Some(feed) = &outputs.aggregate {
+            if feed.push((scan, map)).is_some() {
+                m.aggregate_skipped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+}
+
+/// Tells subscribers (planners, `rangegp load`) that a scan's map answers queries now.
+fn announce(
+    updates: &zenoh::pubsub::Publisher<'static>,
+    scan: &ScanInput,
+    latency: Duration,
+    window_len: usize,
+) {
+    let event = MapUpdate {
+        version: PROTOCOL_VERSION,
+        publisher_id: scan.publisher_id,
+        sequence: scan.sequence,
+        stamp_ns: scan.stamp_ns,
+        latency_ms: latency.as_secs_f64() * 1e3,
+        window_len: window_len as u32,
+    };
+    match codec::encode(Encoding::Bincode, &event) {
+        Ok(bytes) => {
+            if let Err(e) = updates
+                .put(bytes)
+                .encoding(zenoh_encoding(Encoding::Bincode))
+                .wait()
+            {
+                debug!(error = %e, "map update not published");
+            }
+        }
+        Err(e) => warn!(error = %e, "cannot encode a map update"),
+    }
+}

@@ -1,0 +1,387 @@
+//! The daemon: ingest thread → newest-wins queue → fit thread → window → snapshot → queries;
+//! the fit thread hands each map to the aggregate thread, which publishes its own copy. Each
+//! thread's loop lives in its own file; this one starts them (through [`DaemonBuilder`]) and
+//! stops them, in order, with the one [`Shutdown`] signal.
+
+mod aggregate;
+mod checkpoint;
+mod fit;
+mod learn;
+
+use crate::checkpoint::writer::Writer;
+use crate::config::{Config, ConfigError};
+use crate::exporter::Exporter;
+use crate::ingest::subscriber::IngestSettings;
+use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, ValidationLimits};
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::{LocalRangeMap, MapSnapshot};
+use crate::metrics::Metrics;
+use crate::scan::ScanInput;
+use crate::server::{QueryServer, ServerError, MAX_REQUEST_BYTES};
+use crate::shutdown::Shutdown;
+use crate::state::DaemonState;
+use aggregate::{aggregate_loop, AggregatePace};
+use arc_swap::ArcSwap;
+use fit::{fit_loop, FitOutputs};
+use learn::learn_loop;
+use rangegp_transport::{zenoh_config, TransportConfigError};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::thread::JoinHandle;
+use std::time::Duration;
+use thiserror::Error;
+use tracing::{info, warn};
+use zenoh::Wait;
+
+/// The daemon could not start; whatever it had started is stopped again.
+#[derive(Debug, Error)]
+pub enum StartError {
+    /// The configuration is invalid (the error names the field).
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// Zenoh settings are invalid.
+    #[error(transparent)]
+    Transport(#[from] TransportConfigError),
+    /// Zenoh refused a step of the start (endpoint in use, bad config file, closed session).
+    #[error("cannot {action}")]
+    Zenoh {
+        /// What the daemon was doing.
+        action: &'static str,
+        /// Zenoh's error.
+        #[source]
+        source: zenoh::Error,
+    },
+    /// The ingest thread could not start.
+    #[error(transparent)]
+    Ingest(#[from] IngestError),
+    /// The query server could not start.
+    #[error(transparent)]
+    Server(#[from] ServerError),
+    /// A thread could not be spawned (the process is out of threads or memory).
+    #[error("cannot spawn the {thread} thread")]
+    Spawn {
+        /// Which thread.
+        thread: &'static str,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// Fitted scans on their way to the aggregate thread (newest wins).
+type AggregateFeed = LatestQueue<(ScanInput, Arc<LocalRangeMap>)>;
+
+/// Starts a [`Daemon`]: the configuration, and optionally a Zenoh configuration of the caller's
+/// own (an embedding process, a test) in place of the one built from `[zenoh]`.
+#[derive(Debug)]
+#[must_use = "a builder does nothing until `start`"]
+pub struct DaemonBuilder {
+    config: Config,
+    zenoh: Option<zenoh::Config>,
+}
+
+impl DaemonBuilder {
+    /// Uses `zenoh` as the session's configuration instead of the one `[zenoh]` describes.
+    pub fn zenoh_config(mut self, zenoh: zenoh::Config) -> Self {
+        self.zenoh = Some(zenoh);
+        self
+    }
+
+    /// Validates the configuration, opens Zenoh, starts the fit, aggregate, learn and checkpoint
+    /// threads, the query server, the metrics exporter and the ingest thread, in that order. On
+    /// any error, what was already started is stopped before the error is returned.
+    pub fn start(self) -> Result<Daemon, StartError> {
+        let config = self.config;
+        config.validate()?;
+        let zconf = match self.zenoh {
+            Some(zconf) => zconf,
+            None => session_config(&config)?,
+        };
+        let session = zenoh::open(zconf).wait().map_err(|source| StartError::Zenoh {
+            action: "open the zenoh session",
+            source,
+        })?;
+        let metrics = Arc::new(Metrics::default());
+        let mut params = config.map_params();
+        let world_params = WorldParams::default();
+        let (store, restored) = if config.aggregate.enabled {
+            crate::checkpoint::resume(&config.checkpoint, &config.map_id, &world_params, &metrics)
+        } else {
+            (None, None)
+        };
+        if let (Some(r), true) = (&restored, config.gp.online.enabled) {
+            let c = &r.checkpoint;
+            params.kernel = params.kernel.with(c.kernel_variance, c.length_scale);
+        }
+        let world = restored.map(|r| Arc::new(r.world));
+        let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
+        let state = Arc::new(DaemonState {
+            snapshot: ArcSwap::from_pointee(
+                MapSnapshot::new(Vec::new(), world.clone()).with_max_sigma(config.query.max_sigma_m),
+            ),
+            metrics: Arc::clone(&metrics),
+            keys: config.keys(),
+            max_batch: config.query.max_batch,
+            max_ray_range_m: config.query.max_ray_range_m,
+            batch_threads: config.query.threads,
+            window_capacity: config.window.capacity,
+            kernel: Arc::clone(&kernel),
+            nugget_m2: params.nugget_m2,
+            aggregate_radius_m: config.aggregate.enabled.then_some(config.aggregate.radius_m),
+            queue_deadline: Duration::from_millis(config.query.queue_deadline_ms),
+        });
+        // From here on an early return drops `daemon`, which stops what has started.
+        let mut daemon = Daemon {
+            shutdown: Shutdown::new(),
+            state,
+            server: None,
+            ingest: None,
+            fitter: None,
+            learner: None,
+            aggregator: None,
+            checkpointer: None,
+            exporter: None,
+            session: Some(session.clone()),
+        };
+        let shutdown = daemon.shutdown.clone();
+        let state = Arc::clone(&daemon.state);
+
+        let learner_feed = if config.gp.online.enabled {
+            let samples = Arc::new(LatestQueue::new(1));
+            let (rx, kernel, metrics, shutdown) = (
+                Arc::clone(&samples),
+                Arc::clone(&kernel),
+                Arc::clone(&metrics),
+                shutdown.clone(),
+            );
+            let online = config.online_hyperparameters();
+            daemon.learner = Some(spawn("rangegp-hyper", move || {
+                learn_loop(online, &rx, &kernel, &metrics, &shutdown);
+            })?);
+            Some((samples, config.gp.online.subset_rays))
+        } else {
+            None
+        };
+
+        let aggregate_feed = if config.aggregate.enabled {
+            let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
+            let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
+            let pace = AggregatePace {
+                radius_m: config.aggregate.radius_m,
+                min_interval: Duration::from_millis(config.aggregate.min_interval_ms),
+            };
+            let start = world
+                .clone()
+                .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
+            daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
+                aggregate_loop(&rx, &state, start, pace, &shutdown);
+            })?);
+            Some(feed)
+        } else {
+            None
+        };
+
+        if let Some(store) = store {
+            let writer = Arc::new(Mutex::new(Writer::new(
+                store,
+                &config.map_id,
+                &world_params,
+                world,
+            )));
+            let interval = Duration::from_millis(config.checkpoint.interval_ms);
+            let thread = checkpoint::spawn(
+                Arc::clone(&writer),
+                Arc::clone(&state),
+                interval,
+                shutdown.clone(),
+            )
+            .map_err(|source| StartError::Spawn {
+                thread: "rangegp-checkpoint",
+                source,
+            })?;
+            daemon.checkpointer = Some((writer, thread));
+        }
+
+        let updates = session
+            .declare_publisher(state.keys.map_updates())
+            .wait()
+            .map_err(|source| StartError::Zenoh {
+                action: "declare the map-update publisher",
+                source,
+            })?;
+        let queue = Arc::new(LatestQueue::new(config.ingest.queue_len));
+        {
+            let (queue, state, shutdown) = (Arc::clone(&queue), Arc::clone(&state), shutdown.clone());
+            let capacity = config.window.capacity;
+            let outputs = FitOutputs {
+                learner: learner_feed,
+                aggregate: aggregate_feed,
+                calibrate: config.gp.prequential_calibration,
+                updates,
+            };
+            daemon.fitter = Some(spawn("rangegp-fit", move || {
+                fit_loop(&queue, &state, params, capacity, outputs, &shutdown);
+            })?);
+        }
+
+        daemon.server = Some(QueryServer::start(
+            &session,
+            Arc::clone(&state),
+            config.query.threads,
+            64,
+        )?);
+        daemon.exporter = match config.metrics.listen.as_str() {
+            "" => None,
+            listen => Exporter::start(listen, Arc::clone(&state))
+                .inspect_err(|e| warn!(error = %e, "running without prometheus metrics"))
+                .ok(),
+        };
+        daemon.ingest = Some(spawn_ingest(
+            IngestSettings {
+                service_name: config.scan_service_name(),
+                limits: ValidationLimits {
+                    max_points: config.ingest.max_points,
+                    max_future_ns: config.ingest.max_future_ms.saturating_mul(1_000_000),
+                },
+                poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
+                cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),
+                sequence_restart_window: config.ingest.sequence_restart_window,
+                pose: config.pose_limits(),
+                max_retry_interval: Duration::from_millis(config.ingest.max_retry_interval_ms),
+            },
+            queue,
+            metrics,
+            shutdown,
+        )?);
+        info!(
+            map = config.map_id,
+            scans = config.scan_service_name(),
+            "rangegpd started"
+        );
+        Ok(daemon)
+    }
+}
+
+/// The Zenoh session configuration `[zenoh]` describes.
+fn session_config(config: &Config) -> Result<zenoh::Config, StartError> {
+    if let Some(path) = &config.zenoh.config_file {
+        return zenoh::Config::from_file(path).map_err(|source| StartError::Zenoh {
+            action: "read the zenoh config file",
+            source,
+        });
+    }
+    let mut zconf = zenoh_config(
+        &config.zenoh.mode,
+        &config.zenoh.listen,
+        &config.zenoh.connect,
+        config.zenoh.multicast_scouting,
+    )?;
+    // Zenoh reassembles a message up to this size only: a larger request is dropped fragment by
+    // fragment before it costs memory (docs/OPERATIONS.md).
+    let key = "transport/link/rx/max_message_size";
+    zconf
+        .insert_json5(key, &MAX_REQUEST_BYTES.to_string())
+        .map_err(|source| TransportConfigError {
+            key: key.into(),
+            source,
+        })?;
+    Ok(zconf)
+}
+
+/// Spawns a named daemon thread.
+fn spawn(thread: &'static str, body: impl FnOnce() + Send + 'static) -> Result<JoinHandle<()>, StartError> {
+    std::thread::Builder::new()
+        .name(thread.into())
+        .spawn(body)
+        .map_err(|source| StartError::Spawn { thread, source })
+}
+
+/// A running daemon. [`Daemon::shutdown`] (or drop) stops every thread and undeclares the keys.
+pub struct Daemon {
+    shutdown: Shutdown,
+    state: Arc<DaemonState>,
+    server: Option<QueryServer>,
+    ingest: Option<IngestHandle>,
+    fitter: Option<JoinHandle<()>>,
+    learner: Option<JoinHandle<()>>,
+    aggregator: Option<JoinHandle<()>>,
+    checkpointer: Option<(Arc<Mutex<Writer>>, JoinHandle<()>)>,
+    exporter: Option<Exporter>,
+    /// `None` once stopped.
+    session: Option<zenoh::Session>,
+}
+
+impl std::fmt::Debug for Daemon {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Daemon")
+            .field("map", &self.state.keys.map_id())
+            .finish()
+    }
+}
+
+impl Daemon {
+    /// A builder for a daemon with `config`.
+    pub fn builder(config: Config) -> DaemonBuilder {
+        DaemonBuilder { config, zenoh: None }
+    }
+
+    /// Shared counters.
+    pub fn metrics(&self) -> &Metrics {
+        &self.state.metrics
+    }
+
+    /// Where Prometheus metrics are served, if they are.
+    pub fn metrics_addr(&self) -> Option<std::net::SocketAddr> {
+        self.exporter.as_ref().map(Exporter::addr)
+    }
+
+    /// The maps queries see now.
+    pub fn snapshot(&self) -> Arc<MapSnapshot> {
+        self.state.snapshot.load_full()
+    }
+
+    /// Stops ingest, fitting and serving, and waits for every thread.
+    pub fn shutdown(mut self) {
+        self.stop();
+    }
+
+    /// Stops in dependency order: no new queries, no new scans, then the threads that consume
+    /// them, then a last checkpoint of what the aggregate thread published, then Zenoh.
+    fn stop(&mut self) {
+        let Some(session) = self.session.take() else {
+            return;
+        };
+        self.shutdown.trigger();
+        self.server.take();
+        if let Some(i) = self.ingest.take() {
+            i.join();
+        }
+        for (name, thread) in [
+            ("fit", self.fitter.take()),
+            ("hyperparameter", self.learner.take()),
+            ("aggregate", self.aggregator.take()),
+        ] {
+            if thread.is_some_and(|t| t.join().is_err()) {
+                warn!(thread = name, "a daemon thread panicked");
+            }
+        }
+        if let Some((writer, thread)) = self.checkpointer.take() {
+            if thread.join().is_err() {
+                warn!("the checkpoint thread panicked");
+            }
+            writer
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .write_if_changed(&self.state);
+        }
+        self.exporter.take();
+        if let Err(e) = session.close().wait() {
+            warn!(error = %e, "closing the zenoh session failed");
+        }
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}

@@ -1,0 +1,38 @@
+//! The state every thread of the daemon shares, named for what it is.
+
+use crate::gp::Kernel;
+use crate::map::MapSnapshot;
+use crate::metrics::Metrics;
+use arc_swap::ArcSwap;
+use rangegp_proto::keys::MapKeys;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// The daemon's shared state: the maps queries see, counters, and the settings the query side
+/// and status need. The fitter and aggregate threads publish into it, the query server, the
+/// checkpoint writer and the metrics exporter read it.
+#[derive(Debug)]
+pub struct DaemonState {
+    /// Current maps, swapped atomically by the fitter.
+    pub snapshot: ArcSwap<MapSnapshot>,
+    /// Shared counters.
+    pub metrics: Arc<Metrics>,
+    /// Map id served.
+    pub keys: MapKeys,
+    /// Largest batch accepted.
+    pub max_batch: usize,
+    /// Longest ray accepted, metres.
+    pub max_ray_range_m: f64,
+    /// Threads for one large batch.
+    pub batch_threads: usize,
+    /// Window capacity (for status).
+    pub window_capacity: usize,
+    /// Kernel the fitter uses now (updated by online learning).
+    pub kernel: Arc<ArcSwap<Kernel>>,
+    /// Noise variance added to every training ray (for status).
+    pub nugget_m2: f64,
+    /// Eviction radius of the aggregate when it is enabled (for status).
+    pub aggregate_radius_m: Option<f64>,
+    /// Longest wait of a batch query for a worker before it is answered `overloaded`.
+    pub queue_deadline: Duration,
+}
