@@ -20,9 +20,15 @@ pub enum ClientError {
     /// The Zenoh configuration is invalid.
     #[error(transparent)]
     Config(#[from] TransportConfigError),
-    /// Zenoh could not open a session or send the query.
-    #[error("zenoh: {0}")]
-    Transport(String),
+    /// Zenoh could not open a session, declare a subscriber or send the query.
+    #[error("zenoh could not {action}")]
+    Transport {
+        /// What the client was doing.
+        action: &'static str,
+        /// Zenoh's error.
+        #[source]
+        source: zenoh::Error,
+    },
     /// No daemon answered within the timeout (none running, or not reachable yet).
     #[error("no reply from the daemon within {0:?}")]
     Timeout(Duration),
@@ -85,7 +91,8 @@ impl ClientBuilder {
         self
     }
 
-    /// Zenoh mode of the client session (default `peer`).
+    /// Zenoh mode of the client session (default `client`: a planner connects to the daemon or a
+    /// router and routes for no one; `peer` joins a peer mesh).
     pub fn mode(mut self, mode: impl Into<String>) -> Self {
         self.mode = mode.into();
         self
@@ -96,13 +103,19 @@ impl ClientBuilder {
         let keys = MapKeys::new(&self.map_id)?;
         let config = match &self.config_file {
             Some(path) => {
-                zenoh::Config::from_file(path).map_err(|e| ClientError::Transport(e.to_string()))?
+                zenoh::Config::from_file(path).map_err(|source| ClientError::Transport {
+                action: "read the zenoh config file",
+                source,
+            })?
             }
             None => zenoh_config(&self.mode, &[], &self.connect, false)?,
         };
         let session = zenoh::open(config)
             .wait()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|source| ClientError::Transport {
+                action: "open a session",
+                source,
+            })?;
         Ok(Client {
             session,
             keys,
@@ -127,7 +140,7 @@ impl Client {
         ClientBuilder {
             map_id: map_id.into(),
             connect: Vec::new(),
-            mode: "peer".into(),
+            mode: "client".into(),
             timeout: Duration::from_secs(10),
             encoding: Encoding::Bincode,
             config_file: None,
@@ -145,7 +158,10 @@ impl Client {
                 .get(self.keys.alive())
                 .timeout(left.min(Duration::from_millis(500)))
                 .wait()
-                .map_err(|e| ClientError::Transport(e.to_string()))?;
+                .map_err(|source| ClientError::Transport {
+                action: "query liveliness",
+                source,
+            })?;
             if replies.recv().is_ok() {
                 return Ok(());
             }
@@ -258,7 +274,10 @@ impl Client {
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .wait()
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|source| ClientError::Transport {
+                action: "send the query",
+                source,
+            })?;
         let reply = replies.recv().map_err(|_| ClientError::Timeout(self.timeout))?;
         decode_reply(reply, encoding)
     }
@@ -287,7 +306,10 @@ impl Client {
                 }
             })
             .wait()
-            .map_err(|e| ClientError::Transport(e.to_string()))
+            .map_err(|source| ClientError::Transport {
+                action: "declare a subscriber",
+                source,
+            })
     }
 
     /// The keys of the map this client talks to.
@@ -317,7 +339,10 @@ impl Client {
             .target(QueryTarget::AllComplete)
             .timeout(self.timeout)
             .await
-            .map_err(|e| ClientError::Transport(e.to_string()))?;
+            .map_err(|source| ClientError::Transport {
+                action: "send the query",
+                source,
+            })?;
         let reply = replies
             .recv_async()
             .await

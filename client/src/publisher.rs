@@ -1,35 +1,44 @@
 //! Zero-copy scan publishing over iceoryx2: loan a slice in shared memory, write, send.
 
 use iceoryx2::prelude::*;
-use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint};
+use rangegp_proto::scan::{node_builder, open_scan_service, ScanHeader, ScanPoint, ScanServiceError};
 use thiserror::Error;
 
-/// The publisher could not be created or a scan could not be sent.
+/// The publisher could not be created or a scan could not be sent. iceoryx2's own error is
+/// kept as the source.
 #[derive(Debug, Error)]
 pub enum PublishError {
     /// The service name is not a valid iceoryx2 service name.
-    #[error("invalid iceoryx2 service name {0:?}")]
-    ServiceName(String),
-    /// The iceoryx2 node could not be created.
-    #[error("cannot create the iceoryx2 node: {0}")]
-    Node(String),
-    /// The scan service could not be opened or created.
-    #[error("cannot open the scan service: {0}")]
-    Service(String),
+    #[error("invalid iceoryx2 service name {name:?}")]
+    ServiceName {
+        /// Name given.
+        name: String,
+        /// iceoryx2's reason.
+        #[source]
+        source: iceoryx2::service::service_name::ServiceNameError,
+    },
+    /// The iceoryx2 node could not be created (shared memory or permissions).
+    #[error("cannot create the iceoryx2 node")]
+    Node(#[source] iceoryx2::node::NodeCreationFailure),
+    /// The scan service could not be opened or created (another party created it with
+    /// different settings or types).
+    #[error("cannot open the scan service")]
+    Service(#[source] ScanServiceError),
     /// The publisher port could not be created (too many publishers on the service).
-    #[error("cannot create the publisher: {0}")]
-    Publisher(String),
+    #[error("cannot create the publisher")]
+    Publisher(#[source] iceoryx2::port::publisher::PublisherCreateError),
     /// No shared-memory sample could be loaned (all in flight, or the scan is too large).
-    #[error("cannot loan a sample of {points} points: {reason}")]
+    #[error("cannot loan a sample of {points} points")]
     Loan {
         /// Points requested.
         points: usize,
-        /// Cause.
-        reason: String,
+        /// iceoryx2's reason.
+        #[source]
+        source: iceoryx2::port::LoanError,
     },
     /// The sample could not be delivered.
-    #[error("send failed: {0}")]
-    Send(String),
+    #[error("send failed")]
+    Send(#[source] iceoryx2::port::SendError),
 }
 
 /// Publishes scans to the daemon through shared memory.
@@ -54,20 +63,22 @@ impl ScanPublisher {
     /// Opens `service_name` and creates a publisher sized for `max_points` per scan (it grows by
     /// powers of two if a larger scan comes).
     pub fn new(service_name: &str, publisher_id: u64, max_points: usize) -> Result<Self, PublishError> {
-        let name =
-            ServiceName::new(service_name).map_err(|_| PublishError::ServiceName(service_name.to_owned()))?;
-        let node = NodeBuilder::new()
+        let name = ServiceName::new(service_name).map_err(|source| PublishError::ServiceName {
+            name: service_name.to_owned(),
+            source,
+        })?;
+        let node = node_builder()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
-            .map_err(|e| PublishError::Node(format!("{e:?}")))?;
-        let service = open_scan_service(&node, &name).map_err(|e| PublishError::Service(format!("{e:?}")))?;
+            .map_err(PublishError::Node)?;
+        let service = open_scan_service(&node, &name).map_err(PublishError::Service)?;
         let publisher = service
             .publisher_builder()
             .initial_max_slice_len(max_points.max(1))
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .max_loaned_samples(2)
             .create()
-            .map_err(|e| PublishError::Publisher(format!("{e:?}")))?;
+            .map_err(PublishError::Publisher)?;
         Ok(Self {
             publisher,
             publisher_id,
@@ -104,13 +115,13 @@ impl ScanPublisher {
         let mut sample = self
             .publisher
             .loan_slice_uninit(points.len())
-            .map_err(|e| PublishError::Loan {
+            .map_err(|source| PublishError::Loan {
                 points: points.len(),
-                reason: format!("{e:?}"),
+                source,
             })?;
         *sample.user_header_mut() = header;
         let sample = sample.write_from_fn(|i| points[i]);
-        sample.send().map_err(|e| PublishError::Send(format!("{e:?}")))?;
+        sample.send().map_err(PublishError::Send)?;
         Ok(())
     }
 }

@@ -2,7 +2,7 @@
 //! the real iceoryx2 publisher, and a simulated planner querying over real Zenoh (loopback,
 //! scouting off). Ends with a table, `summary.json` and pictures.
 
-use crate::plot::{save_heatmap, Raster};
+use crate::plot::{Heatmap, Limits, Raster};
 use crate::scangen::{now_ns, ScanGenerator};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -246,39 +246,20 @@ fn draw_pictures(client: &Client, world: &ScanGenerator, opts: &DemoOptions) -> 
     );
     let truth = raster(cells.iter().map(|c| world.terrain.height(c[0], c[1])).collect());
     let path: Vec<[f64; 2]> = world.path.waypoints.iter().map(|w| [w[0], w[1]]).collect();
-    let zrange = truth.range();
-    save_heatmap(
-        &opts.out.join("elevation.png"),
-        &z,
-        zrange,
-        colorous::VIRIDIS,
-        &path,
-        4,
-    )?;
-    save_heatmap(
-        &opts.out.join("truth.png"),
-        &truth,
-        zrange,
-        colorous::VIRIDIS,
-        &path,
-        4,
-    )?;
-    save_heatmap(
-        &opts.out.join("sigma.png"),
-        &sigma,
-        None,
-        colorous::MAGMA,
-        &path,
-        4,
-    )?;
-    save_heatmap(
-        &opts.out.join("abs_error.png"),
-        &error,
-        Some((0.0, 0.1)),
-        colorous::INFERNO,
-        &path,
-        4,
-    )?;
+    let zrange = truth.range().map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
+    let pictures = [
+        ("elevation.png", "Predicted elevation", "elevation (m)", &z, zrange, colorous::VIRIDIS),
+        ("truth.png", "Ground truth", "elevation (m)", &truth, zrange, colorous::VIRIDIS),
+        ("sigma.png", "Calibrated σ of the elevation", "σ (m)", &sigma, Limits::Robust, colorous::MAGMA),
+        ("abs_error.png", "Absolute elevation error", "|error| (m)", &error, Limits::Fixed(0.0, 0.1), colorous::INFERNO),
+    ];
+    for (file, title, unit, raster, limits, gradient) in pictures {
+        Heatmap::new(title, unit)
+            .limits(limits)
+            .gradient(gradient)
+            .path(&path)
+            .save(&opts.out.join(file), raster)?;
+    }
     Ok(items.iter().filter(|i| i.z_m.is_some()).count() as f64 / items.len().max(1) as f64)
 }
 

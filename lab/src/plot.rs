@@ -1,9 +1,15 @@
-//! Pictures of map layers: a colour-mapped raster (north up) with an optional path overlay and a
-//! colour bar along the bottom. `image` writes the PNG; `colorous` supplies perceptual maps.
+//! The one renderer of every picture (demo, `rangegp grid --png`, evaluation): a colour-mapped
+//! raster in map coordinates with axes in their units, a title, the robot's path, and a colour
+//! bar with values and units. `plotters` draws (fonts from the `dejavu` crate, so nothing is
+//! needed from the system), `colorous` supplies perceptual colour maps, `image` writes the PNG.
 
-use image::{Rgb, RgbImage};
+use plotters::prelude::*;
+use plotters::style::{register_font, FontStyle};
 use rangegp_proto::msg::GridReply;
+use rangegp_service::metrics::latency::percentile;
 use std::path::Path;
+use std::sync::Once;
+use thiserror::Error;
 
 /// A regular grid of optional values; row 0 is the southern edge (smallest y).
 #[derive(Debug, Clone, PartialEq)]
@@ -76,83 +82,257 @@ impl Raster {
     }
 }
 
-/// Writes `raster` as a PNG with `scale` pixels per cell, the colour map stretched over
-/// `range` (default: the data's range), and `path` (map x, y) drawn in red.
-pub fn save_heatmap(
-    file: &Path,
-    raster: &Raster,
-    range: Option<(f64, f64)>,
-    gradient: colorous::Gradient,
-    path: &[[f64; 2]],
-    scale: u32,
-) -> Result<(), image::ImageError> {
-    let (lo, hi) = range.or_else(|| raster.range()).unwrap_or((0.0, 1.0));
-    let span = (hi - lo).max(1e-12);
-    let (w, h) = (raster.nx as u32 * scale, raster.ny as u32 * scale);
-    let bar = 16;
-    let mut img = RgbImage::from_pixel(w, h + bar, Rgb([255, 255, 255]));
-    for row in 0..raster.ny {
-        for col in 0..raster.nx {
-            let colour = match raster.values[row * raster.nx + col] {
-                Some(v) => rgb(gradient.eval_continuous(((v - lo) / span).clamp(0.0, 1.0))),
-                None => Rgb([160, 160, 160]),
-            };
-            let top = (raster.ny - 1 - row) as u32 * scale;
-            for dy in 0..scale {
-                for dx in 0..scale {
-                    img.put_pixel(col as u32 * scale + dx, top + dy, colour);
-                }
-            }
-        }
-    }
-    for p in path {
-        let px = ((p[0] - raster.x0) / raster.resolution + 0.5) * scale as f64;
-        let py = h as f64 - ((p[1] - raster.y0) / raster.resolution + 0.5) * scale as f64;
-        for dy in -1i64..=1 {
-            for dx in -1i64..=1 {
-                let (x, y) = (px as i64 + dx, py as i64 + dy);
-                if x >= 0 && y >= 0 && (x as u32) < w && (y as u32) < h {
-                    img.put_pixel(x as u32, y as u32, Rgb([220, 20, 20]));
-                }
-            }
-        }
-    }
-    for x in 0..w {
-        let c = rgb(gradient.eval_continuous(x as f64 / (w.max(2) - 1) as f64));
-        for y in h + 4..h + bar {
-            img.put_pixel(x, y, c);
-        }
-    }
-    img.save(file)
+/// The value range the colours span.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Limits {
+    /// The 2nd to the 98th percentile of the values: one outlier cannot wash the rest out;
+    /// values beyond are drawn in the end colours and the colour bar says so.
+    Robust,
+    /// Exactly this range (e.g. shared by a prediction and its ground truth).
+    Fixed(f64, f64),
 }
 
-fn rgb(c: colorous::Color) -> Rgb<u8> {
-    Rgb([c.r, c.g, c.b])
+/// A picture could not be made.
+#[derive(Debug, Error)]
+pub enum PlotError {
+    /// plotters could not draw (a font, a layout).
+    #[error("cannot draw the picture")]
+    Draw(#[source] Box<dyn std::error::Error + Send + Sync>),
+    /// The PNG could not be encoded or written.
+    #[error("cannot write the picture")]
+    Write(#[from] image::ImageError),
+}
+
+/// What a heat map shows: title, units, colours, limits and an optional path overlay.
+#[derive(Debug, Clone)]
+pub struct Heatmap<'a> {
+    title: String,
+    x_label: &'a str,
+    y_label: &'a str,
+    value_label: &'a str,
+    gradient: colorous::Gradient,
+    limits: Limits,
+    path: &'a [[f64; 2]],
+}
+
+/// Grey of cells without a value.
+const NO_VALUE: RGBColor = RGBColor(170, 170, 170);
+/// Width of the colour-bar panel, pixels.
+const BAR_PANEL: u32 = 150;
+/// Largest side of the raster, pixels.
+const MAX_SIDE: u32 = 820;
+
+impl<'a> Heatmap<'a> {
+    /// A map-view heat map titled `title` of a quantity labelled `value_label` (with its unit,
+    /// e.g. `"σ (m)"`); axes `x (m)` and `y (m)`, viridis, robust limits, no path.
+    pub fn new(title: impl Into<String>, value_label: &'a str) -> Self {
+        Self {
+            title: title.into(),
+            x_label: "x (m)",
+            y_label: "y (m)",
+            value_label,
+            gradient: colorous::VIRIDIS,
+            limits: Limits::Robust,
+            path: &[],
+        }
+    }
+
+    /// Axis labels with units (e.g. azimuth and elevation in degrees).
+    pub fn axes(mut self, x_label: &'a str, y_label: &'a str) -> Self {
+        (self.x_label, self.y_label) = (x_label, y_label);
+        self
+    }
+
+    /// The colour map.
+    pub fn gradient(mut self, gradient: colorous::Gradient) -> Self {
+        self.gradient = gradient;
+        self
+    }
+
+    /// The value range the colours span.
+    pub fn limits(mut self, limits: Limits) -> Self {
+        self.limits = limits;
+        self
+    }
+
+    /// A path (map x, y) drawn over the raster in red.
+    pub fn path(mut self, path: &'a [[f64; 2]]) -> Self {
+        self.path = path;
+        self
+    }
+
+    /// Draws `raster` to the PNG `file`.
+    pub fn save(&self, file: &Path, raster: &Raster) -> Result<(), PlotError> {
+        static FONT: Once = Once::new();
+        FONT.call_once(|| {
+            // The dejavu crate's bytes are a valid TrueType font; a failure would only mean
+            // text falls back to nothing, which the draw below reports.
+            let _ = register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+        });
+        let (lo, hi, clipped) = self.value_range(raster);
+        let cell = (MAX_SIDE / raster.nx.max(raster.ny).max(1) as u32).clamp(1, 16);
+        let (plot_w, plot_h) = (raster.nx as u32 * cell, raster.ny as u32 * cell);
+        let (left, bottom, top, right) = (80, 55, 45, 20);
+        let (w, h) = (left + plot_w + right + BAR_PANEL, top + plot_h.max(200) + bottom);
+        let mut buf = vec![255u8; (w * h * 3) as usize];
+        self.draw(&mut buf, (w, h), raster, (lo, hi, clipped), (left, bottom, top))
+            .map_err(PlotError::Draw)?;
+        let img = image::RgbImage::from_raw(w, h, buf)
+            .ok_or_else(|| PlotError::Draw("picture buffer of the wrong size".into()))?;
+        img.save(file)?;
+        Ok(())
+    }
+
+    /// (lo, hi, whether values lie beyond) of the colour scale.
+    fn value_range(&self, raster: &Raster) -> (f64, f64, bool) {
+        let mut values: Vec<f64> = raster.values.iter().flatten().copied().collect();
+        let (lo, hi) = match self.limits {
+            Limits::Fixed(lo, hi) => (lo, hi),
+            Limits::Robust => (
+                percentile(&mut values, 0.02).unwrap_or(0.0),
+                percentile(&mut values, 0.98).unwrap_or(1.0),
+            ),
+        };
+        let hi = if hi > lo { hi } else { lo + 1e-9_f64.max(lo.abs() * 1e-6) };
+        let clipped = values.iter().any(|&v| v < lo || v > hi);
+        (lo, hi, clipped)
+    }
+
+    fn draw(
+        &self,
+        buf: &mut [u8],
+        size: (u32, u32),
+        raster: &Raster,
+        (lo, hi, clipped): (f64, f64, bool),
+        (left, bottom, top): (u32, u32, u32),
+    ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+        let root = BitMapBackend::with_buffer(buf, size).into_drawing_area();
+        let (main, bar) = root.split_horizontally(size.0 - BAR_PANEL);
+        let half = raster.resolution / 2.0;
+        let xs = (raster.x0 - half)..(raster.x0 + (raster.nx as f64 - 0.5) * raster.resolution);
+        let ys = (raster.y0 - half)..(raster.y0 + (raster.ny as f64 - 0.5) * raster.resolution);
+        let mut chart = ChartBuilder::on(&main)
+            .caption(&self.title, ("sans-serif", 20))
+            .margin_top(top.saturating_sub(35))
+            .x_label_area_size(bottom)
+            .y_label_area_size(left)
+            .build_cartesian_2d(xs, ys)?;
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc(self.x_label)
+            .y_desc(self.y_label)
+            .label_style(("sans-serif", 13))
+            .axis_desc_style(("sans-serif", 15))
+            .draw()?;
+        let span = hi - lo;
+        let colour = |v: f64| {
+            let c = self.gradient.eval_continuous(((v - lo) / span).clamp(0.0, 1.0));
+            RGBColor(c.r, c.g, c.b)
+        };
+        chart.draw_series(raster.values.iter().enumerate().map(|(k, v)| {
+            let (col, row) = ((k % raster.nx) as f64, (k / raster.nx) as f64);
+            let x = raster.x0 + col * raster.resolution;
+            let y = raster.y0 + row * raster.resolution;
+            let fill = v.map_or(NO_VALUE, colour);
+            Rectangle::new([(x - half, y - half), (x + half, y + half)], fill.filled())
+        }))?;
+        if !self.path.is_empty() {
+            chart.draw_series(LineSeries::new(
+                self.path.iter().map(|p| (p[0], p[1])),
+                RED.stroke_width(2),
+            ))?;
+        }
+        let label = if clipped {
+            format!("{} (ends clipped)", self.value_label)
+        } else {
+            self.value_label.to_owned()
+        };
+        let mut legend = ChartBuilder::on(&bar)
+            .margin_top(top)
+            .margin_bottom(bottom)
+            .margin_right(70)
+            .y_label_area_size(0)
+            .right_y_label_area_size(60)
+            .build_cartesian_2d(0.0..1.0, lo..hi)?;
+        legend
+            .configure_mesh()
+            .disable_mesh()
+            .disable_x_axis()
+            .y_desc(label)
+            .label_style(("sans-serif", 13))
+            .axis_desc_style(("sans-serif", 14))
+            .draw()?;
+        let steps = 200;
+        legend.draw_series((0..steps).map(|i| {
+            let a = lo + span * i as f64 / steps as f64;
+            let b = lo + span * (i + 1) as f64 / steps as f64;
+            Rectangle::new([(0.0, a), (1.0, b)], colour((a + b) / 2.0).filled())
+        }))?;
+        bar.draw(&Text::new(
+            "grey: no answer",
+            (5, size.1 as i32 - 22),
+            ("sans-serif", 12),
+        ))?;
+        root.present()?;
+        Ok(())
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn writes_a_png_of_the_expected_size() {
-        let raster = Raster {
+    fn raster() -> Raster {
+        Raster {
             nx: 3,
             ny: 2,
             x0: 0.0,
             y0: 0.0,
             resolution: 1.0,
             values: vec![Some(0.0), Some(1.0), None, Some(2.0), None, Some(0.5)],
-        };
-        assert_eq!(raster.range(), Some((0.0, 2.0)));
+        }
+    }
+
+    #[test]
+    fn a_picture_has_the_raster_its_colour_bar_and_grey_for_no_value() {
+        let r = raster();
+        assert_eq!(r.range(), Some((0.0, 2.0)));
         let dir = std::env::temp_dir().join(format!("rangegp-plot-{}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("temp dir");
         let file = dir.join("t.png");
-        save_heatmap(&file, &raster, None, colorous::VIRIDIS, &[[1.0, 1.0]], 4).expect("png");
+        Heatmap::new("test", "z (m)")
+            .limits(Limits::Fixed(0.0, 2.0))
+            .path(&[[0.0, 0.0], [2.0, 1.0]])
+            .save(&file, &r)
+            .expect("png");
         let img = image::open(&file).expect("read back").to_rgb8();
-        assert_eq!(img.dimensions(), (12, 8 + 16));
-        // Unobserved cell (col 2, row 0) is grey; row 0 is drawn at the bottom.
-        assert_eq!(img.get_pixel(9, 5), &Rgb([160, 160, 160]));
+        let pixels: Vec<_> = img.pixels().collect();
+        let grey = pixels.iter().filter(|p| p.0 == [170, 170, 170]).count();
+        let red = pixels.iter().filter(|p| p.0 == [255, 0, 0]).count();
+        let viridis_top = colorous::VIRIDIS.eval_continuous(1.0);
+        let top = pixels
+            .iter()
+            .filter(|p| p.0 == [viridis_top.r, viridis_top.g, viridis_top.b])
+            .count();
+        // Two cells without value, a path, the highest value in one cell and in the bar.
+        assert!(grey > 1000, "grey pixels: {grey}");
+        assert!(red > 50, "path pixels: {red}");
+        assert!(top > 1000, "top-colour pixels: {top}");
+        // Text was drawn (black pixels of labels and title beyond the axes' lines).
+        let dark = pixels.iter().filter(|p| p.0.iter().all(|&c| c < 60)).count();
+        assert!(dark > 500, "dark (text and axis) pixels: {dark}");
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn robust_limits_ignore_one_outlier() {
+        let mut r = raster();
+        r.values = (0..100).map(|i| Some(i as f64 * 0.001)).collect();
+        r.values[7] = Some(1000.0);
+        (r.nx, r.ny) = (10, 10);
+        let (lo, hi, clipped) = Heatmap::new("t", "σ (m)").value_range(&r);
+        assert!(lo >= 0.0 && hi < 0.1, "({lo}, {hi})");
+        assert!(clipped);
     }
 }

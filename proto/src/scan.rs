@@ -124,6 +124,26 @@ pub type ScanService = iceoryx2::service::port_factory::publish_subscribe::PortF
     ScanHeader,
 >;
 
+/// A node builder on iceoryx2's configuration: the file iceoryx2 itself would load (project
+/// `config/iceoryx2.toml`, then `$HOME/.config/iceoryx2/iceoryx2.toml`, then
+/// `/etc/iceoryx2/iceoryx2.toml`) when one exists, else iceoryx2's defaults given explicitly, which
+/// is what iceoryx2 falls back to anyway, without its "No config file was loaded" warning at
+/// every start of every process.
+pub fn node_builder() -> iceoryx2::prelude::NodeBuilder {
+    let home = std::env::var_os("HOME").map(std::path::PathBuf::from);
+    let candidates = [
+        Some(std::path::PathBuf::from("config/iceoryx2.toml")),
+        home.map(|h| h.join(".config/iceoryx2/iceoryx2.toml")),
+        Some(std::path::PathBuf::from("/etc/iceoryx2/iceoryx2.toml")),
+    ];
+    let builder = iceoryx2::prelude::NodeBuilder::new();
+    if candidates.iter().flatten().any(|p| p.is_file()) {
+        builder
+    } else {
+        builder.config(&iceoryx2::prelude::Config::default())
+    }
+}
+
 /// Opens (or creates) the scan service `name` with the contract's quality of service, so every
 /// publisher and the daemon agree on it whoever comes first.
 pub fn open_scan_service(

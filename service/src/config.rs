@@ -5,6 +5,7 @@ use crate::gp::{JitterPolicy, Kernel, KernelFamily};
 use crate::map::local::{MapParams, PriorKind, RangeTarget};
 use crate::map::tiles::Tiling;
 use rangegp_proto::keys::MapKeys;
+use rangegp_transport::zenoh_config;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -13,19 +14,25 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum ConfigError {
     /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}")]
     Read {
         /// File.
         path: PathBuf,
         /// Cause.
+        #[source]
         source: std::io::Error,
     },
     /// The TOML is malformed or has unknown fields.
-    #[error("invalid configuration: {0}")]
+    #[error("invalid configuration")]
     Parse(#[from] toml::de::Error),
     /// A value is out of its domain.
-    #[error("invalid configuration: {0}")]
-    Invalid(String),
+    #[error("invalid configuration: {field} {reason}")]
+    Invalid {
+        /// The field, as written in the TOML (`gp.length_scale`).
+        field: &'static str,
+        /// What it must be.
+        reason: String,
+    },
 }
 
 /// The whole daemon configuration.
@@ -386,77 +393,83 @@ impl Config {
         Self::from_toml(&text)
     }
 
-    /// Checks every value's domain.
+    /// Checks every value's domain; the error names the first field out of it.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |m: &str| Err(ConfigError::Invalid(m.to_owned()));
-        MapKeys::new(&self.map_id).map_err(|e| ConfigError::Invalid(e.to_string()))?;
-        let g = &self.gp;
         let positive = |v: f64| v.is_finite() && v > 0.0;
-        if !positive(g.kernel_variance)
-            || !positive(g.length_scale)
-            || !g.sphere_radius_m.is_none_or(positive)
-        {
-            return bad(
-                "gp.kernel_variance, gp.length_scale and gp.sphere_radius_m (when set) must be positive",
-            );
-        }
-        if !(g.nugget_m2.is_finite() && g.nugget_m2 >= 0.0) {
-            return bad("gp.nugget_m2 must be finite and non-negative");
-        }
-        if g.max_training_rays == 0 || !(8..=4096).contains(&g.max_rays_per_tile) {
-            return bad("gp.max_training_rays must be positive and gp.max_rays_per_tile in 8..=4096");
-        }
-        if !(0.01..=0.45).contains(&g.tile_overlap) {
-            return bad("gp.tile_overlap must be in [0.01, 0.45]");
-        }
-        if !positive(g.sensor_height_m) || !positive(g.constant_range_m) {
-            return bad("gp.sensor_height_m and gp.constant_range_m must be positive");
-        }
-        let o = &g.online;
+        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
         let ordered = |b: [f64; 2]| b[0] > 0.0 && b[1] > b[0] && b[1].is_finite();
-        if o.iterations == 0 || o.subset_rays < 8 || !(o.smoothing > 0.0 && o.smoothing <= 1.0) {
-            return bad("gp.online needs iterations ≥ 1, subset_rays ≥ 8 and smoothing in (0, 1]");
+        let (g, o, i, q, a) = (&self.gp, &self.gp.online, &self.ingest, &self.query, &self.aggregate);
+        let alpha_ok = match g.kernel {
+            KernelFamily::RationalQuadratic { alpha } => positive(alpha),
+            _ => true,
+        };
+        let service_ok = i.service_name.is_empty()
+            || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
+        let listen_ok = self.metrics.listen.is_empty()
+            || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
+        let checks: [(bool, &'static str, &str); 36] = [
+            (MapKeys::new(&self.map_id).is_ok(), "map_id", "must be a non-empty key-expression chunk (no '/', '*', '$', '?', '#')"),
+            (service_ok, "ingest.service_name", "must be empty (the default) or a valid iceoryx2 service name"),
+            (i.max_points > 0, "ingest.max_points", "must be positive"),
+            (i.poll_interval_ms > 0, "ingest.poll_interval_ms", "must be positive"),
+            (i.cleanup_interval_s > 0, "ingest.cleanup_interval_s", "must be positive"),
+            (i.queue_len > 0, "ingest.queue_len", "must be positive"),
+            (i.sequence_restart_window > 0, "ingest.sequence_restart_window", "must be positive"),
+            (positive(i.map_bounds_m), "ingest.map_bounds_m", "must be a positive number of metres"),
+            (positive(i.max_speed_mps), "ingest.max_speed_mps", "must be positive"),
+            (non_negative(i.pose_slack_m), "ingest.pose_slack_m", "must be finite and non-negative"),
+            (i.pose_confirm_scans >= 2, "ingest.pose_confirm_scans", "must be at least 2"),
+            (i.max_retry_interval_ms > 0, "ingest.max_retry_interval_ms", "must be positive"),
+            (alpha_ok, "gp.kernel.alpha", "must be positive and finite"),
+            (positive(g.kernel_variance), "gp.kernel_variance", "must be positive"),
+            (positive(g.length_scale), "gp.length_scale", "must be positive"),
+            (g.sphere_radius_m.is_none_or(positive), "gp.sphere_radius_m", "must be positive when set"),
+            (non_negative(g.nugget_m2), "gp.nugget_m2", "must be finite and non-negative"),
+            (g.max_training_rays > 0, "gp.max_training_rays", "must be positive"),
+            ((8..=4096).contains(&g.max_rays_per_tile), "gp.max_rays_per_tile", "must be in 8..=4096"),
+            ((0.01..=0.45).contains(&g.tile_overlap), "gp.tile_overlap", "must be in [0.01, 0.45]"),
+            (positive(g.sensor_height_m), "gp.sensor_height_m", "must be positive"),
+            (positive(g.constant_range_m), "gp.constant_range_m", "must be positive"),
+            (o.iterations > 0, "gp.online.iterations", "must be at least 1"),
+            (o.smoothing > 0.0 && o.smoothing <= 1.0, "gp.online.smoothing", "must be in (0, 1]"),
+            (o.subset_rays >= 8, "gp.online.subset_rays", "must be at least 8"),
+            (ordered(o.variance_bounds), "gp.online.variance_bounds", "must be [min, max] with 0 < min < max"),
+            (ordered(o.length_scale_bounds), "gp.online.length_scale_bounds", "must be [min, max] with 0 < min < max"),
+            (self.window.capacity > 0, "window.capacity", "must be positive"),
+            (a.queue_len > 0, "aggregate.queue_len", "must be positive"),
+            (positive(a.radius_m), "aggregate.radius_m", "must be a positive number of metres"),
+            (matches!(self.zenoh.mode.as_str(), "peer" | "client" | "router"), "zenoh.mode", "must be peer, client or router"),
+            (q.max_batch > 0 && q.threads > 0, "query.max_batch and query.threads", "must be positive"),
+            (positive(q.max_ray_range_m), "query.max_ray_range_m", "must be a positive number of metres"),
+            (q.queue_deadline_ms > 0, "query.queue_deadline_ms", "must be positive"),
+            (positive(q.max_sigma_m), "query.max_sigma_m", "must be a positive number of metres"),
+            (listen_ok, "metrics.listen", "must be host:port with an IP host, or empty to disable"),
+        ];
+        let invalid = |field: &'static str, reason: &str| ConfigError::Invalid {
+            field,
+            reason: reason.to_owned(),
+        };
+        if let Some((_, field, reason)) = checks.iter().find(|(ok, _, _)| !ok) {
+            return Err(invalid(field, reason));
         }
-        if !ordered(o.variance_bounds) || !ordered(o.length_scale_bounds) {
-            return bad("gp.online bounds must be 0 < min < max");
+        if self.checkpoint.interval_ms == 0 {
+            return Err(invalid("checkpoint.interval_ms", "must be positive"));
         }
-        if self.aggregate.queue_len == 0 || !positive(self.aggregate.radius_m) {
-            return bad("aggregate.queue_len and aggregate.radius_m must be positive");
+        if self.checkpoint.keep < 2 {
+            return Err(invalid("checkpoint.keep", "must be at least 2"));
         }
-        if !self.metrics.listen.is_empty() && self.metrics.listen.parse::<std::net::SocketAddr>().is_err() {
-            return bad("metrics.listen must be host:port with an IP host (or empty to disable)");
-        }
-        if self.checkpoint.interval_ms == 0 || self.checkpoint.keep < 2 {
-            return bad("checkpoint.interval_ms must be positive and checkpoint.keep at least 2");
-        }
-        if self.window.capacity == 0 {
-            return bad("window.capacity must be positive");
-        }
-        let i = &self.ingest;
-        if i.max_points == 0 || i.queue_len == 0 {
-            return bad("ingest.max_points and ingest.queue_len must be positive");
-        }
-        if i.sequence_restart_window == 0 || i.pose_confirm_scans < 2 || i.max_retry_interval_ms == 0 {
-            return bad("ingest.sequence_restart_window and ingest.max_retry_interval_ms must be positive, ingest.pose_confirm_scans at least 2");
-        }
-        if !(positive(i.map_bounds_m)
-            && positive(i.max_speed_mps)
-            && i.pose_slack_m.is_finite()
-            && i.pose_slack_m >= 0.0)
-        {
-            return bad("ingest.map_bounds_m and ingest.max_speed_mps must be positive, ingest.pose_slack_m finite and non-negative");
-        }
-        if self.query.queue_deadline_ms == 0 {
-            return bad("query.queue_deadline_ms must be positive");
-        }
-        if !positive(self.query.max_sigma_m) {
-            return bad("query.max_sigma_m must be a positive number of metres");
-        }
-        if self.query.max_batch == 0 || self.query.threads == 0 || !positive(self.query.max_ray_range_m) {
-            return bad("query.max_batch, query.threads and query.max_ray_range_m must be positive");
-        }
-        if !matches!(self.zenoh.mode.as_str(), "peer" | "client" | "router") {
-            return bad("zenoh.mode must be peer, client or router");
+        // The endpoints are checked by building the session configuration they describe.
+        if self.zenoh.config_file.is_none() {
+            zenoh_config(
+                &self.zenoh.mode,
+                &self.zenoh.listen,
+                &self.zenoh.connect,
+                self.zenoh.multicast_scouting,
+            )
+            .map_err(|e| ConfigError::Invalid {
+                field: "zenoh.listen / zenoh.connect",
+                reason: format!("are not valid endpoints ({})", e.source),
+            })?;
         }
         Ok(())
     }
@@ -543,14 +556,23 @@ mod tests {
             Config::from_toml("mapid = \"x\""),
             Err(ConfigError::Parse(_))
         ));
-        assert!(matches!(
-            Config::from_toml("[gp]\nlength_scale = -1.0"),
-            Err(ConfigError::Invalid(_))
-        ));
-        assert!(matches!(
-            Config::from_toml("map_id = \"a/b\""),
-            Err(ConfigError::Invalid(_))
-        ));
+        let field = |toml: &str| match Config::from_toml(toml) {
+            Err(ConfigError::Invalid { field, .. }) => field,
+            other => panic!("{toml:?} gave {other:?}"),
+        };
+        assert_eq!(field("[gp]\nlength_scale = -1.0"), "gp.length_scale");
+        assert_eq!(field("map_id = \"a/b\""), "map_id");
+        // Once passed validation and panicked at start.
+        assert_eq!(
+            field("[gp]\nkernel = { family = \"rational_quadratic\", alpha = 0.0 }"),
+            "gp.kernel.alpha"
+        );
+        assert_eq!(field("[ingest]\npoll_interval_ms = 0"), "ingest.poll_interval_ms");
+        assert_eq!(field("[checkpoint]\nkeep = 1"), "checkpoint.keep");
+        assert_eq!(
+            field("[zenoh]\nlisten = [\"not an endpoint\"]"),
+            "zenoh.listen / zenoh.connect"
+        );
     }
 
     #[test]

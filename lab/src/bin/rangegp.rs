@@ -6,7 +6,7 @@ use clap::{Args, Parser, Subcommand};
 use rangegp_client::{Client, ScanPublisher};
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
-use rangegp_lab::plot::{save_heatmap, Raster};
+use rangegp_lab::plot::{Heatmap, Raster};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
 use rangegp_proto::msg::{GridReply, Ray};
 use rangegp_sim::ScannerPreset;
@@ -177,13 +177,14 @@ fn pairs(coords: &[f64]) -> Result<Vec<[f64; 2]>> {
 
 /// Elevation to `file`, σ beside it (`<stem>_sigma.png`); unobserved cells grey.
 fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
-    let scale = (800 / rep.cols.max(rep.rows).max(1)).clamp(1, 16);
     let elevation = Raster::from_grid(rep, &rep.elevation_m, |z| z);
-    save_heatmap(file, &elevation, None, colorous::VIRIDIS, &[], scale)?;
+    Heatmap::new("Elevation", "elevation (m)").save(file, &elevation)?;
     let sigma = Raster::from_grid(rep, &rep.variance_m2, f64::sqrt);
     let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("grid");
     let sigma_file = file.with_file_name(format!("{stem}_sigma.png"));
-    save_heatmap(&sigma_file, &sigma, None, colorous::MAGMA, &[], scale)?;
+    Heatmap::new("σ of the elevation", "σ (m)")
+        .gradient(colorous::MAGMA)
+        .save(&sigma_file, &sigma)?;
     Ok(())
 }
 

@@ -8,7 +8,7 @@ use super::local::{self, NUGGET_M2};
 use super::progress;
 use super::scores::{MeanSd, Sample, Scores};
 use super::split::{split_scan, SplitScan};
-use crate::plot::{save_heatmap, Raster};
+use crate::plot::{Heatmap, Limits, Raster};
 use anyhow::{Context, Result};
 use nalgebra::{UnitQuaternion, Vector3};
 use rand::SeedableRng;
@@ -272,15 +272,11 @@ fn draw(
     let h = terrain.half_extent();
     let path: Vec<[f64; 2]> = traj.dense.clone();
     let whole = Raster::from_fn((-h, -h), (h, h), 0.25, |x, y| terrain.height(x, y));
-    let zrange = whole.range();
-    save_heatmap(
-        &out.join("heightmap.png"),
-        &whole,
-        zrange,
-        colorous::VIRIDIS,
-        &path,
-        2,
-    )?;
+    let zrange = whole.range().map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
+    Heatmap::new("Terrain and the rover's path", "elevation (m)")
+        .limits(zrange)
+        .path(&path)
+        .save(&out.join("heightmap.png"), &whole)?;
     let fold = |f: fn(f64, f64) -> f64, init: f64, k: usize| path.iter().map(|p| p[k]).fold(init, f);
     let lo = (
         (fold(f64::min, f64::INFINITY, 0) - 11.0).max(-h),
@@ -296,42 +292,27 @@ fn draw(
         Some((world.elevation(x, y)?.z - terrain.height(x, y)?).abs())
     });
     let sd = Raster::from_fn(lo, hi, res, |x, y| world.elevation(x, y).map(|e| e.var.sqrt()));
-    save_heatmap(
-        &out.join("aggregate_elevation.png"),
-        &z,
-        zrange,
-        colorous::VIRIDIS,
-        &path,
-        4,
-    )?;
-    save_heatmap(
-        &out.join("aggregate_abs_error.png"),
-        &err,
-        Some((0.0, 0.1)),
-        colorous::INFERNO,
-        &path,
-        4,
-    )?;
-    save_heatmap(
-        &out.join("aggregate_sigma.png"),
-        &sd,
-        Some((0.0, 0.05)),
-        colorous::MAGMA,
-        &path,
-        4,
-    )?;
+    let pictures = [
+        ("aggregate_elevation.png", "Aggregate elevation", "elevation (m)", &z, zrange, colorous::VIRIDIS),
+        ("aggregate_abs_error.png", "Aggregate absolute error", "|error| (m)", &err, Limits::Fixed(0.0, 0.1), colorous::INFERNO),
+        ("aggregate_sigma.png", "Aggregate σ", "σ (m)", &sd, Limits::Robust, colorous::MAGMA),
+    ];
+    for (file, title, unit, raster, limits, gradient) in pictures {
+        Heatmap::new(title, unit)
+            .limits(limits)
+            .gradient(gradient)
+            .path(&path)
+            .save(&out.join(file), raster)?;
+    }
     if let Some(p) = seed000 {
         let err = Raster::from_fn(lo, hi, 0.5, |x, y| {
             Some((p.elevation(x, y)?.z - terrain.height(x, y)?).abs())
         });
-        save_heatmap(
-            &out.join("seed000_abs_error.png"),
-            &err,
-            Some((0.0, 0.3)),
-            colorous::INFERNO,
-            &path,
-            2,
-        )?;
+        Heatmap::new("Seed 000 pose-augmented GP: absolute error", "|error| (m)")
+            .limits(Limits::Fixed(0.0, 0.3))
+            .gradient(colorous::INFERNO)
+            .path(&path)
+            .save(&out.join("seed000_abs_error.png"), &err)?;
     }
     Ok(())
 }

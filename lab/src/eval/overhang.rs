@@ -8,7 +8,7 @@ use super::local::{self, NUGGET_M2};
 use super::progress;
 use super::scores::{Sample, Scores};
 use super::split::{split_scan, SplitScan};
-use crate::plot::{save_heatmap, Raster};
+use crate::plot::{Heatmap, Limits, Raster};
 use anyhow::{Context, Result};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -269,14 +269,18 @@ fn draw(scan: &SplitScan, kernel: Kernel, out: &Path) -> Result<()> {
     let t = Raster::from_fn(lo, hi, 0.5, truth);
     let f = Raster::from_fn(lo, hi, 0.5, |a, e| truth(a, e).and(fitted(a, e)));
     let e = Raster::from_fn(lo, hi, 0.5, |a, e| Some((fitted(a, e)? - truth(a, e)?).abs()));
-    let range = Some((0.0, RANGE_M));
+    let range = Limits::Fixed(0.0, RANGE_M);
     let pictures = [
-        ("overhang_true_range.png", &t, range, colorous::VIRIDIS),
-        ("overhang_fitted_range.png", &f, range, colorous::VIRIDIS),
-        ("overhang_abs_error.png", &e, Some((0.0, 0.05)), colorous::INFERNO),
+        ("overhang_true_range.png", "True range", "range (m)", &t, range, colorous::VIRIDIS),
+        ("overhang_fitted_range.png", "Fitted range", "range (m)", &f, range, colorous::VIRIDIS),
+        ("overhang_abs_error.png", "Absolute range error", "|error| (m)", &e, Limits::Fixed(0.0, 0.05), colorous::INFERNO),
     ];
-    for (name, raster, limits, colours) in pictures {
-        save_heatmap(&out.join(name), raster, limits, colours, &[], 3)?;
+    for (name, title, unit, raster, limits, gradient) in pictures {
+        Heatmap::new(title, unit)
+            .axes("azimuth (°)", "elevation (°)")
+            .limits(limits)
+            .gradient(gradient)
+            .save(&out.join(name), raster)?;
     }
     Ok(())
 }

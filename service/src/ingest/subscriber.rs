@@ -11,7 +11,7 @@ use crate::metrics::Metrics;
 use crate::scan::RejectReason;
 use crate::shutdown::Shutdown;
 use iceoryx2::prelude::*;
-use rangegp_proto::scan::{open_scan_service, ScanHeader, ScanPoint};
+use rangegp_proto::scan::{node_builder, open_scan_service, ScanHeader, ScanPoint, ScanServiceError};
 use std::sync::atomic::Ordering;
 use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
@@ -25,29 +25,31 @@ use tracing::{debug, info, info_span, warn};
 #[derive(Debug, Error)]
 pub enum IngestError {
     /// The service name is not a valid iceoryx2 service name.
-    #[error("invalid iceoryx2 service name {name:?}: {reason}")]
+    #[error("invalid iceoryx2 service name {name:?}")]
     ServiceName {
         /// Name given.
         name: String,
-        /// Cause.
-        reason: String,
+        /// iceoryx2's reason.
+        #[source]
+        source: iceoryx2::service::service_name::ServiceNameError,
     },
     /// The iceoryx2 node could not be created (shared memory or permissions).
-    #[error("cannot create the iceoryx2 node: {0}")]
-    Node(String),
+    #[error("cannot create the iceoryx2 node")]
+    Node(#[source] iceoryx2::node::NodeCreationFailure),
     /// The scan service could not be opened or created (incompatible settings or types).
-    #[error("cannot open the scan service {name:?}: {reason}")]
+    #[error("cannot open the scan service {name:?}")]
     Service {
         /// Service name.
         name: String,
-        /// Cause.
-        reason: String,
+        /// iceoryx2's reason.
+        #[source]
+        source: ScanServiceError,
     },
     /// The subscriber could not be created (too many subscribers).
-    #[error("cannot create the scan subscriber: {0}")]
-    Subscriber(String),
+    #[error("cannot create the scan subscriber")]
+    Subscriber(#[source] iceoryx2::port::subscriber::SubscriberCreateError),
     /// The OS refused to start the thread.
-    #[error("cannot spawn the ingest thread: {0}")]
+    #[error("cannot spawn the ingest thread")]
     Spawn(#[from] std::io::Error),
     /// The thread stopped before reporting whether it started.
     #[error("ingest thread exited during start-up")]
@@ -147,8 +149,9 @@ fn open_with_retry(
                 return Some(intake);
             }
             Err(e) if e.is_transient() => {
-                warn!(error = %e, retry_in_ms = wait.as_millis() as u64, "cannot subscribe to scans; queries are still served");
-                metrics.set_ingest_state(Some(e.to_string()));
+                let cause = with_causes(&e);
+                warn!(error = %cause, retry_in_ms = wait.as_millis() as u64, "cannot subscribe to scans; queries are still served");
+                metrics.set_ingest_state(Some(cause));
                 if let Some(r) = ready.take() {
                     let _ = r.send(Ok(()));
                 }
@@ -181,25 +184,25 @@ const LOG_INTERVAL: Duration = Duration::from_secs(5);
 
 impl Intake {
     fn open(settings: &IngestSettings) -> Result<Self, IngestError> {
-        let name = ServiceName::new(&settings.service_name).map_err(|e| IngestError::ServiceName {
+        let name = ServiceName::new(&settings.service_name).map_err(|source| IngestError::ServiceName {
             name: settings.service_name.clone(),
-            reason: format!("{e:?}"),
+            source,
         })?;
-        let node = NodeBuilder::new()
+        let node = node_builder()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<ipc::Service>()
-            .map_err(|e| IngestError::Node(format!("{e:?}")))?;
+            .map_err(IngestError::Node)?;
         // A daemon killed with SIGKILL leaves its subscriber port behind; free it before asking
         // for a new one (the service admits few subscribers).
         log_cleanup(node.try_cleanup_dead_nodes());
-        let service = open_scan_service(&node, &name).map_err(|e| IngestError::Service {
+        let service = open_scan_service(&node, &name).map_err(|source| IngestError::Service {
             name: settings.service_name.clone(),
-            reason: format!("{e:?}"),
+            source,
         })?;
         let subscriber = service
             .subscriber_builder()
             .create()
-            .map_err(|e| IngestError::Subscriber(format!("{e:?}")))?;
+            .map_err(IngestError::Subscriber)?;
         info!(service = %settings.service_name, "ingest listening");
         Ok(Self {
             node,
@@ -370,4 +373,16 @@ fn log_cleanup(state: iceoryx2::node::CleanupState) {
             "dead iceoryx2 nodes"
         );
     }
+}
+
+/// `e` and its sources, `: `-separated (what status shows and the log says).
+fn with_causes(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        text.push_str(": ");
+        text.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    text
 }
