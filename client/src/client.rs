@@ -102,12 +102,10 @@ impl ClientBuilder {
     pub fn open(self) -> Result<Client, ClientError> {
         let keys = MapKeys::new(&self.map_id)?;
         let config = match &self.config_file {
-            Some(path) => {
-                zenoh::Config::from_file(path).map_err(|source| ClientError::Transport {
+            Some(path) => zenoh::Config::from_file(path).map_err(|source| ClientError::Transport {
                 action: "read the zenoh config file",
                 source,
-            })?
-            }
+            })?,
             None => zenoh_config(&self.mode, &[], &self.connect, false)?,
         };
         let session = zenoh::open(config)
@@ -159,9 +157,9 @@ impl Client {
                 .timeout(left.min(Duration::from_millis(500)))
                 .wait()
                 .map_err(|source| ClientError::Transport {
-                action: "query liveliness",
-                source,
-            })?;
+                    action: "query liveliness",
+                    source,
+                })?;
             if replies.recv().is_ok() {
                 return Ok(());
             }

@@ -112,13 +112,13 @@ impl ScanPublisher {
     /// Sends `header` and `points` exactly as given (no field filled in): for tools and tests
     /// that must produce malformed scans.
     pub fn publish_raw(&self, header: ScanHeader, points: &[ScanPoint]) -> Result<(), PublishError> {
-        let mut sample = self
-            .publisher
-            .loan_slice_uninit(points.len())
-            .map_err(|source| PublishError::Loan {
-                points: points.len(),
-                source,
-            })?;
+        let mut sample =
+            self.publisher
+                .loan_slice_uninit(points.len())
+                .map_err(|source| PublishError::Loan {
+                    points: points.len(),
+                    source,
+                })?;
         *sample.user_header_mut() = header;
         let sample = sample.write_from_fn(|i| points[i]);
         sample.send().map_err(PublishError::Send)?;

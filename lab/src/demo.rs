@@ -246,12 +246,42 @@ fn draw_pictures(client: &Client, world: &ScanGenerator, opts: &DemoOptions) -> 
     );
     let truth = raster(cells.iter().map(|c| world.terrain.height(c[0], c[1])).collect());
     let path: Vec<[f64; 2]> = world.path.waypoints.iter().map(|w| [w[0], w[1]]).collect();
-    let zrange = truth.range().map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
+    let zrange = truth
+        .range()
+        .map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
     let pictures = [
-        ("elevation.png", "Predicted elevation", "elevation (m)", &z, zrange, colorous::VIRIDIS),
-        ("truth.png", "Ground truth", "elevation (m)", &truth, zrange, colorous::VIRIDIS),
-        ("sigma.png", "Calibrated σ of the elevation", "σ (m)", &sigma, Limits::Robust, colorous::MAGMA),
-        ("abs_error.png", "Absolute elevation error", "|error| (m)", &error, Limits::Fixed(0.0, 0.1), colorous::INFERNO),
+        (
+            "elevation.png",
+            "Predicted elevation",
+            "elevation (m)",
+            &z,
+            zrange,
+            colorous::VIRIDIS,
+        ),
+        (
+            "truth.png",
+            "Ground truth",
+            "elevation (m)",
+            &truth,
+            zrange,
+            colorous::VIRIDIS,
+        ),
+        (
+            "sigma.png",
+            "Calibrated σ of the elevation",
+            "σ (m)",
+            &sigma,
+            Limits::Robust,
+            colorous::MAGMA,
+        ),
+        (
+            "abs_error.png",
+            "Absolute elevation error",
+            "|error| (m)",
+            &error,
+            Limits::Fixed(0.0, 0.1),
+            colorous::INFERNO,
+        ),
     ];
     for (file, title, unit, raster, limits, gradient) in pictures {
         Heatmap::new(title, unit)

@@ -5,11 +5,13 @@
 //! - [`bench`]: GP, hyperparameter and query benchmarks (`rangegp-bench`).
 //! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
 //! - [`scangen`]: simulated scans in the wire layout.
+//! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
 
 #![deny(missing_docs)]
 
 pub mod bench;
+pub mod certs;
 pub mod demo;
 pub mod eval;
 pub mod load;

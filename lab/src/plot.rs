@@ -193,7 +193,11 @@ impl<'a> Heatmap<'a> {
                 percentile(&mut values, 0.98).unwrap_or(1.0),
             ),
         };
-        let hi = if hi > lo { hi } else { lo + 1e-9_f64.max(lo.abs() * 1e-6) };
+        let hi = if hi > lo {
+            hi
+        } else {
+            lo + 1e-9_f64.max(lo.abs() * 1e-6)
+        };
         let clipped = values.iter().any(|&v| v < lo || v > hi);
         (lo, hi, clipped)
     }

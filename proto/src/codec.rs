@@ -182,9 +182,11 @@ mod tests {
         assert_eq!(Encoding::from_mime(BINCODE_MIME), Encoding::Bincode);
     }
 
+    /// Seeded random cases (the failing seed is in the message).
     mod properties {
         use super::*;
-        use proptest::prelude::*;
+        use rand::{Rng, SeedableRng};
+        use rand_pcg::Pcg64;
 
         fn decode_all(encoding: Encoding, bytes: &[u8]) {
             // Any outcome but a panic or an unbounded allocation.
@@ -198,44 +200,68 @@ mod tests {
             let _ = peek_version(encoding, bytes);
         }
 
-        proptest! {
-            #[test]
-            fn arbitrary_bytes_never_panic_a_decoder(bytes in proptest::collection::vec(any::<u8>(), 0..256)) {
+        const CASES: u64 = 512;
+
+        #[test]
+        fn arbitrary_bytes_never_panic_a_decoder() {
+            for seed in 0..CASES {
+                let mut rng = Pcg64::seed_from_u64(seed);
+                let n = rng.random_range(0..256);
+                let bytes: Vec<u8> = (0..n).map(|_| rng.random()).collect();
                 decode_all(Encoding::Bincode, &bytes);
                 decode_all(Encoding::Json, &bytes);
             }
+        }
 
-            #[test]
-            fn huge_declared_lengths_are_refused_without_allocating(len in (1u64 << 32)..u64::MAX, version in 0u32..4) {
+        #[test]
+        fn huge_declared_lengths_are_refused_without_allocating() {
+            for seed in 0..CASES {
+                let mut rng = Pcg64::seed_from_u64(seed);
+                let len: u64 = rng.random_range((1u64 << 32)..u64::MAX);
+                let version: u32 = rng.random_range(0..4);
                 let mut bytes = encode(Encoding::Bincode, &version).expect("version");
                 bytes.push(253);
                 bytes.extend_from_slice(&len.to_le_bytes());
-                prop_assert!(decode::<ElevationRequest>(Encoding::Bincode, &bytes).is_err());
-                prop_assert!(decode::<RayRequest>(Encoding::Bincode, &bytes).is_err());
+                assert!(
+                    decode::<ElevationRequest>(Encoding::Bincode, &bytes).is_err(),
+                    "seed {seed}"
+                );
+                assert!(
+                    decode::<RayRequest>(Encoding::Bincode, &bytes).is_err(),
+                    "seed {seed}"
+                );
             }
+        }
 
-            #[test]
-            fn requests_round_trip_in_both_encodings(
-                points in proptest::collection::vec(any::<[i32; 2]>(), 0..64),
-                rays in proptest::collection::vec(any::<([i16; 3], [i16; 3], u16)>(), 0..16),
-            ) {
+        #[test]
+        fn requests_round_trip_in_both_encodings() {
+            for seed in 0..CASES {
+                let mut rng = Pcg64::seed_from_u64(seed);
                 // Dyadic values: serde_json (without float_roundtrip) may move the last bit of others.
-                let points: Vec<[f64; 2]> = points.iter().map(|p| [p[0] as f64 / 8.0, p[1] as f64 / 4.0]).collect();
-                let e = ElevationRequest { version: PROTOCOL_VERSION, points };
-                let rays = rays
-                    .iter()
-                    .map(|(o, d, r)| Ray {
-                        origin_m: o.map(|v| v as f64 / 16.0),
-                        direction: d.map(f64::from),
-                        max_range_m: *r as f64,
+                let points: Vec<[f64; 2]> = (0..rng.random_range(0..64))
+                    .map(|_| [rng.random::<i32>() as f64 / 8.0, rng.random::<i32>() as f64 / 4.0])
+                    .collect();
+                let e = ElevationRequest {
+                    version: PROTOCOL_VERSION,
+                    points,
+                };
+                let rays = (0..rng.random_range(0..16))
+                    .map(|_| Ray {
+                        origin_m: [0; 3].map(|_| rng.random::<i16>() as f64 / 16.0),
+                        direction: [0; 3].map(|_| f64::from(rng.random::<i16>())),
+                        max_range_m: f64::from(rng.random::<u16>()),
                     })
                     .collect();
-                let r = RayRequest { version: PROTOCOL_VERSION, rays };
+                let r = RayRequest {
+                    version: PROTOCOL_VERSION,
+                    rays,
+                };
                 for enc in [Encoding::Bincode, Encoding::Json] {
-                    let back: ElevationRequest = decode(enc, &encode(enc, &e).expect("encode")).expect("decode");
-                    prop_assert_eq!(&back, &e);
+                    let back: ElevationRequest =
+                        decode(enc, &encode(enc, &e).expect("encode")).expect("decode");
+                    assert_eq!(back, e, "seed {seed}");
                     let back: RayRequest = decode(enc, &encode(enc, &r).expect("encode")).expect("decode");
-                    prop_assert_eq!(&back, &r);
+                    assert_eq!(back, r, "seed {seed}");
                 }
             }
         }

@@ -5,45 +5,13 @@
 
 use anyhow::{Context, Result};
 use rangegp_client::{Client, ClientError};
+use rangegp_lab::certs::Authority;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_tests::{unique_id, WAIT};
 use rangegp_transport::free_loopback_endpoint;
-use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-
-/// A certificate authority that signs leaf certificates into a directory.
-struct Authority {
-    issuer: Issuer<'static, KeyPair>,
-}
-
-impl Authority {
-    fn new(dir: &Path, name: &str) -> Result<Self> {
-        let mut params = CertificateParams::new(Vec::new())?;
-        params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-        params.distinguished_name.push(DnType::CommonName, name);
-        params.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::DigitalSignature];
-        let key = KeyPair::generate()?;
-        let cert = params.self_signed(&key)?;
-        std::fs::write(dir.join(format!("{name}.pem")), cert.pem())?;
-        Ok(Self {
-            issuer: Issuer::new(params, key),
-        })
-    }
-
-    /// Writes `<file>.pem` and `<file>.key`: a leaf for `localhost` with common name `cn`.
-    fn leaf(&self, dir: &Path, file: &str, cn: &str) -> Result<()> {
-        let mut params = CertificateParams::new(vec!["localhost".to_owned()])?;
-        params.distinguished_name.push(DnType::CommonName, cn);
-        params.use_authority_key_identifier_extension = true;
-        let key = KeyPair::generate()?;
-        let cert = params.signed_by(&key, &self.issuer)?;
-        std::fs::write(dir.join(format!("{file}.pem")), cert.pem())?;
-        std::fs::write(dir.join(format!("{file}.key")), key.serialize_pem())?;
-        Ok(())
-    }
-}
 
 /// The shipped file with this test's certificate directory and port.
 fn render(template: &str, tls_dir: &Path, port: &str, out: PathBuf) -> Result<PathBuf> {

@@ -56,6 +56,17 @@ enum Command {
     Demo(DemoOptions),
     /// Print the daemon's counters as JSON.
     Status(Connection),
+    /// Write a CA, the daemon's certificate and one per planner into DIR, as the shipped
+    /// mutual-TLS configuration (deploy/zenoh-*.json5) expects them. For trials, not production.
+    Certs {
+        /// Output directory.
+        #[arg(long, default_value = "tls")]
+        dir: std::path::PathBuf,
+        /// Planner common names (each gets NAME.pem / NAME.key; the shipped daemon config lists
+        /// planner-1 and planner-2).
+        #[arg(long, default_values_t = ["planner-1".to_owned()])]
+        planner: Vec<String>,
+    },
     /// Run one query and print the reply as JSON.
     Query {
         #[command(flatten)]
@@ -199,6 +210,14 @@ fn main() -> Result<()> {
         Command::Demo(opts) => {
             let summary = demo::run(&opts)?;
             demo::print_table(&summary, &opts.out);
+        }
+        Command::Certs { dir, planner } => {
+            rangegp_lab::certs::write_site(&dir, &planner)?;
+            println!(
+                "wrote ca.pem, rangegpd.pem/.key and {} planner certificate(s) to {}",
+                planner.len(),
+                dir.display()
+            );
         }
         Command::Status(c) => println!("{}", serde_json::to_string_pretty(&c.open()?.status()?)?),
         Command::Query { connection, kind } => {

@@ -272,7 +272,9 @@ fn draw(
     let h = terrain.half_extent();
     let path: Vec<[f64; 2]> = traj.dense.clone();
     let whole = Raster::from_fn((-h, -h), (h, h), 0.25, |x, y| terrain.height(x, y));
-    let zrange = whole.range().map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
+    let zrange = whole
+        .range()
+        .map_or(Limits::Robust, |(lo, hi)| Limits::Fixed(lo, hi));
     Heatmap::new("Terrain and the rover's path", "elevation (m)")
         .limits(zrange)
         .path(&path)
@@ -293,9 +295,30 @@ fn draw(
     });
     let sd = Raster::from_fn(lo, hi, res, |x, y| world.elevation(x, y).map(|e| e.var.sqrt()));
     let pictures = [
-        ("aggregate_elevation.png", "Aggregate elevation", "elevation (m)", &z, zrange, colorous::VIRIDIS),
-        ("aggregate_abs_error.png", "Aggregate absolute error", "|error| (m)", &err, Limits::Fixed(0.0, 0.1), colorous::INFERNO),
-        ("aggregate_sigma.png", "Aggregate σ", "σ (m)", &sd, Limits::Robust, colorous::MAGMA),
+        (
+            "aggregate_elevation.png",
+            "Aggregate elevation",
+            "elevation (m)",
+            &z,
+            zrange,
+            colorous::VIRIDIS,
+        ),
+        (
+            "aggregate_abs_error.png",
+            "Aggregate absolute error",
+            "|error| (m)",
+            &err,
+            Limits::Fixed(0.0, 0.1),
+            colorous::INFERNO,
+        ),
+        (
+            "aggregate_sigma.png",
+            "Aggregate σ",
+            "σ (m)",
+            &sd,
+            Limits::Robust,
+            colorous::MAGMA,
+        ),
     ];
     for (file, title, unit, raster, limits, gradient) in pictures {
         Heatmap::new(title, unit)

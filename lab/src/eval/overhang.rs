@@ -271,9 +271,30 @@ fn draw(scan: &SplitScan, kernel: Kernel, out: &Path) -> Result<()> {
     let e = Raster::from_fn(lo, hi, 0.5, |a, e| Some((fitted(a, e)? - truth(a, e)?).abs()));
     let range = Limits::Fixed(0.0, RANGE_M);
     let pictures = [
-        ("overhang_true_range.png", "True range", "range (m)", &t, range, colorous::VIRIDIS),
-        ("overhang_fitted_range.png", "Fitted range", "range (m)", &f, range, colorous::VIRIDIS),
-        ("overhang_abs_error.png", "Absolute range error", "|error| (m)", &e, Limits::Fixed(0.0, 0.05), colorous::INFERNO),
+        (
+            "overhang_true_range.png",
+            "True range",
+            "range (m)",
+            &t,
+            range,
+            colorous::VIRIDIS,
+        ),
+        (
+            "overhang_fitted_range.png",
+            "Fitted range",
+            "range (m)",
+            &f,
+            range,
+            colorous::VIRIDIS,
+        ),
+        (
+            "overhang_abs_error.png",
+            "Absolute range error",
+            "|error| (m)",
+            &e,
+            Limits::Fixed(0.0, 0.05),
+            colorous::INFERNO,
+        ),
     ];
     for (name, title, unit, raster, limits, gradient) in pictures {
         Heatmap::new(title, unit)
