@@ -4,6 +4,7 @@
 //! - [`ScanPublisher`]: zero-copy scan publishing over iceoryx2 (always; no Zenoh needed).
 
 #![deny(missing_docs)]
+#![forbid(unsafe_code)]
 
 #[cfg(feature = "query")]
 pub mod client;

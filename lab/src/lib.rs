@@ -9,6 +9,7 @@
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
 
 #![deny(missing_docs)]
+#![forbid(unsafe_code)]
 
 pub mod bench;
 pub mod certs;

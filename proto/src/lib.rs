@@ -7,6 +7,9 @@
 //!
 //! The byte layout and the rules are written out in `docs/PROTOCOL.md`.
 
+#![forbid(unsafe_code)]
+#![deny(missing_docs)]
+
 pub mod codec;
 pub mod keys;
 pub mod msg;

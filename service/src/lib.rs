@@ -13,6 +13,8 @@
 //! - [`config`], [`metrics`]: TOML configuration, counters and latencies.
 //! - [`priority`], [`shutdown`]: background threads yield; one stop signal for all.
 
+#![deny(missing_docs)]
+
 pub mod checkpoint;
 pub mod config;
 pub mod daemon;

@@ -2,6 +2,8 @@
 //! runs at a higher nice value, so that on a robot's few cores the latency-critical threads —
 //! Zenoh's (which answer single-point queries), ingest and the fitter — preempt it at once.
 
+#![allow(unsafe_code)] // Allowed here, each site with its SAFETY comment; denied elsewhere.
+
 /// How much a background thread yields.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Background {

@@ -5,6 +5,9 @@
 //! Everything is deterministic given a seed (PCG64 generators), so tests, the demo and the
 //! evaluation see the same worlds on every machine.
 
+#![forbid(unsafe_code)]
+#![deny(missing_docs)]
+
 pub mod family;
 pub mod path;
 pub mod scene;

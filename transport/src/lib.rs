@@ -2,6 +2,7 @@
 //! of the protocol's encodings.
 
 #![deny(missing_docs)]
+#![forbid(unsafe_code)]
 
 use rangegp_proto::codec::Encoding;
 use std::sync::LazyLock;

@@ -6,6 +6,8 @@
 //! f64x4 (SSE2 or NEON) and plain loops. Measured (docs/ARCHITECTURE.md): a 128-input Matérn sum
 //! takes about a third of the time of the portable path.
 
+#![allow(unsafe_code)] // Allowed here, each site with its SAFETY comment; denied elsewhere.
+
 use super::points::Points;
 use wide::f64x4;
 

@@ -224,6 +224,7 @@ pub fn add_saturating(counter: &AtomicU64, n: u64) {
 
 /// Gives freed heap memory back to the OS (glibc keeps it in its arenas otherwise), so that a
 /// burst of large requests does not stay in the resident set.
+#[allow(unsafe_code)]
 pub fn return_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only walks glibc's own arenas; it takes no pointer from us.

@@ -1,0 +1,201 @@
+//! The crates' module structure: no module imports from a module that depends on it. Every
+//! `crate::…` and `super::…` path in non-test code is resolved to the module it names, the edge
+//! is lifted to the two sibling modules under their closest common parent, and each parent's
+//! sibling graph must be acyclic. (A child using its own parent's items is not a sibling edge.)
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+type Module = Vec<String>;
+
+/// Every `.rs` file of `src` (binaries excluded) with its module path.
+fn modules(src: &Path) -> Vec<(Module, PathBuf)> {
+    let mut out = Vec::new();
+    let mut stack = vec![src.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).expect("read src") {
+            let path = entry.expect("entry").path();
+            let rel = path.strip_prefix(src).expect("under src");
+            if rel.starts_with("bin") {
+                continue;
+            }
+            if path.is_dir() {
+                stack.push(path);
+                continue;
+            }
+            if path.extension().is_none_or(|e| e != "rs") {
+                continue;
+            }
+            let mut module: Module = rel
+                .with_extension("")
+                .components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect();
+            if matches!(module.last().map(String::as_str), Some("mod" | "lib")) {
+                module.pop();
+            }
+            out.push((module, path));
+        }
+    }
+    out
+}
+
+/// Paths after `prefix` (`crate::` or `super::`) in `code`, each as its segments.
+fn paths_after(code: &str, prefix: &str) -> Vec<Vec<String>> {
+    let mut out = Vec::new();
+    let mut rest = code;
+    while let Some(at) = rest.find(prefix) {
+        let before = rest[..at].chars().last();
+        rest = &rest[at + prefix.len()..];
+        if before.is_some_and(|c| c.is_alphanumeric() || c == '_') {
+            continue;
+        }
+        let end = rest
+            .find(|c: char| !(c.is_alphanumeric() || c == '_' || c == ':'))
+            .unwrap_or(rest.len());
+        out.push(
+            rest[..end]
+                .split("::")
+                .filter(|s| !s.is_empty())
+                .map(str::to_owned)
+                .collect(),
+        );
+    }
+    out
+}
+
+/// The sibling edges (parent, from child, to child) of a crate's non-test code.
+fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
+    let files = modules(src);
+    let known: BTreeSet<Module> = files.iter().map(|(m, _)| m.clone()).collect();
+    let mut edges = BTreeSet::new();
+    for (module, path) in &files {
+        let text = std::fs::read_to_string(path).expect("read");
+        let code = text.split("#[cfg(test)]").next().unwrap_or("");
+        let is_dir_module = path.file_name().is_some_and(|f| f == "mod.rs" || f == "lib.rs");
+        let parent: Module = if is_dir_module {
+            module
+                .iter()
+                .take(module.len().saturating_sub(1))
+                .cloned()
+                .collect()
+        } else {
+            module[..module.len() - 1].to_vec()
+        };
+        let targets = paths_after(code, "crate::").into_iter().chain(
+            paths_after(code, "super::")
+                .into_iter()
+                .map(|p| parent.iter().cloned().chain(p).collect::<Module>()),
+        );
+        for target in targets {
+            let named = (0..=target.len())
+                .rev()
+                .map(|n| target[..n].to_vec())
+                .find(|m| known.contains(m))
+                .unwrap_or_default();
+            let common = module.iter().zip(&named).take_while(|(a, b)| a == b).count();
+            if common < module.len() && common < named.len() {
+                edges.insert((
+                    module[..common].to_vec(),
+                    module[common].clone(),
+                    named[common].clone(),
+                ));
+            }
+        }
+    }
+    edges
+}
+
+/// A cycle among siblings, if any, as the modules on it.
+fn cycle(edges: &BTreeSet<(Module, String, String)>) -> Option<(Module, Vec<String>)> {
+    let mut graphs: BTreeMap<&Module, BTreeMap<&str, Vec<&str>>> = BTreeMap::new();
+    for (parent, from, to) in edges {
+        graphs
+            .entry(parent)
+            .or_default()
+            .entry(from)
+            .or_default()
+            .push(to);
+    }
+    for (parent, graph) in graphs {
+        // Depth-first search with the path kept: a node met again on the path closes a cycle.
+        fn visit<'a>(
+            node: &'a str,
+            graph: &BTreeMap<&'a str, Vec<&'a str>>,
+            path: &mut Vec<&'a str>,
+            done: &mut BTreeSet<&'a str>,
+        ) -> Option<Vec<String>> {
+            if let Some(at) = path.iter().position(|n| *n == node) {
+                return Some(
+                    path[at..]
+                        .iter()
+                        .map(|s| s.to_string())
+                        .chain([node.to_owned()])
+                        .collect(),
+                );
+            }
+            if !done.insert(node) {
+                return None;
+            }
+            path.push(node);
+            for next in graph.get(node).into_iter().flatten() {
+                if let Some(c) = visit(next, graph, path, done) {
+                    return Some(c);
+                }
+            }
+            path.pop();
+            None
+        }
+        let mut done = BTreeSet::new();
+        for start in graph.keys() {
+            if let Some(c) = visit(start, &graph, &mut Vec::new(), &mut done) {
+                return Some((parent.clone(), c));
+            }
+        }
+    }
+    None
+}
+
+fn crate_src(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(name)
+        .join("src")
+}
+
+#[test]
+fn no_module_of_any_crate_imports_from_a_module_that_depends_on_it() {
+    for name in ["proto", "transport", "service", "client", "sim", "lab"] {
+        let edges = sibling_edges(&crate_src(name));
+        if let Some((parent, c)) = cycle(&edges) {
+            panic!(
+                "{name}: modules under {:?} form a cycle: {}",
+                parent,
+                c.join(" → ")
+            );
+        }
+    }
+}
+
+#[test]
+fn the_check_finds_a_cycle_where_there_is_one() {
+    let dir = std::env::temp_dir().join(format!("rangegp-structure-{}", std::process::id()));
+    let src = dir.join("src");
+    std::fs::create_dir_all(src.join("b")).expect("dirs");
+    std::fs::write(src.join("lib.rs"), "pub mod a;\npub mod b;\n").expect("lib");
+    std::fs::write(src.join("a.rs"), "use crate::b::inner::Thing;\n").expect("a");
+    std::fs::write(src.join("b/mod.rs"), "pub mod inner;\n").expect("b");
+    std::fs::write(
+        src.join("b/inner.rs"),
+        "pub struct Thing;\nfn f() { let _ = crate::a::X; }\n#[cfg(test)]\nuse crate::c;\n",
+    )
+    .expect("inner");
+    let found = cycle(&sibling_edges(&src));
+    std::fs::remove_dir_all(&dir).ok();
+    let (parent, c) = found.expect("a ⇄ b is a cycle");
+    assert!(parent.is_empty());
+    assert!(
+        c.contains(&"a".to_owned()) && c.contains(&"b".to_owned()),
+        "{c:?}"
+    );
+}
