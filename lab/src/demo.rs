@@ -1,4 +1,4 @@
-//! `rangegpd demo`: the daemon on embedded defaults, a simulated rover publishing scans through
+//! `rangegp demo`: the daemon on embedded defaults, a simulated rover publishing scans through
 //! the real iceoryx2 publisher, and a simulated planner querying over real Zenoh (loopback,
 //! scouting off). Ends with a table, `summary.json` and pictures.
 
@@ -18,7 +18,7 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-/// Demo settings (CLI flags of `rangegpd demo`).
+/// Demo settings (CLI flags of `rangegp demo`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoOptions {
     /// Scans the rover publishes.

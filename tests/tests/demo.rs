@@ -1,5 +1,5 @@
 //! The demo (daemon + rover over iceoryx2 + planner over Zenoh) meets its accuracy bars and
-//! writes its summary and pictures. A reduced run of `rangegpd demo`.
+//! writes its summary and pictures. A reduced run of `rangegp demo`.
 
 use rangegp_lab::demo::{run, DemoOptions};
 

@@ -5,6 +5,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
+use std::process::Command;
 
 type Module = Vec<String>;
 
@@ -198,4 +199,64 @@ fn the_check_finds_a_cycle_where_there_is_one() {
         c.contains(&"a".to_owned()) && c.contains(&"b".to_owned()),
         "{c:?}"
     );
+}
+
+/// `cargo tree` for one package of the workspace (offline, from the lock file), one name per line.
+fn cargo_tree(package: &str, depth: Option<u32>) -> Vec<String> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let mut cmd = Command::new(cargo);
+    cmd.current_dir(&root)
+        .args(["tree", "--frozen", "-e", "normal", "--prefix", "none", "-p", package]);
+    if let Some(d) = depth {
+        cmd.args(["--depth", &d.to_string()]);
+    }
+    let out = cmd.output().expect("run cargo tree");
+    assert!(out.status.success(), "cargo tree: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
+        .collect()
+}
+
+#[test]
+fn the_crate_edges_in_the_architecture_document_are_cargo_s() {
+    let doc = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/ARCHITECTURE.md"),
+    )
+    .expect("read ARCHITECTURE.md");
+    let block = doc
+        .split("```crate-edges\n")
+        .nth(1)
+        .and_then(|b| b.split("```").next())
+        .expect("a crate-edges block");
+    let documented: BTreeMap<String, BTreeSet<String>> = block
+        .lines()
+        .filter_map(|l| l.split_once(" -> "))
+        .map(|(from, to)| (from.to_owned(), to.split_whitespace().map(str::to_owned).collect()))
+        .collect();
+    for package in ["proto", "transport", "sim", "client", "service", "lab", "tests"] {
+        let name = format!("rangegp-{package}");
+        let actual: BTreeSet<String> = cargo_tree(&name, Some(1))
+            .into_iter()
+            .filter(|d| d.starts_with("rangegp-") && *d != name)
+            .collect();
+        let listed = documented.get(&name).cloned().unwrap_or_default();
+        assert_eq!(actual, listed, "{name}: cargo tree against docs/ARCHITECTURE.md");
+    }
+}
+
+#[test]
+fn the_daemon_links_no_lab_code_and_a_planner_no_simulator_or_pictures() {
+    let forbidden = |package: &str, names: &[&str]| {
+        let tree = cargo_tree(package, None);
+        for name in names {
+            assert!(!tree.iter().any(|d| d == name), "{package} depends on {name}");
+        }
+    };
+    forbidden(
+        "rangegp-service",
+        &["rangegp-sim", "rangegp-client", "image", "colorous", "indicatif", "plotters"],
+    );
+    forbidden("rangegp-client", &["rangegp-sim", "image", "colorous", "plotters"]);
 }
