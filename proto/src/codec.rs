@@ -49,9 +49,12 @@ pub enum CodecError {
     /// The payload exceeds [`MAX_DECODE_BYTES`].
     #[error("payload of {0} bytes exceeds the {MAX_DECODE_BYTES}-byte limit")]
     TooLarge(usize),
-    /// bincode rejected the payload.
+    /// bincode could not encode the value (a type serde cannot express in bincode).
     #[error("bincode: {0}")]
-    Bincode(String),
+    BincodeEncode(bincode::error::EncodeError),
+    /// bincode rejected the payload (its reason is part of the message peers receive).
+    #[error("bincode: {0}")]
+    BincodeDecode(bincode::error::DecodeError),
     /// JSON rejected the payload.
     #[error("json: {0}")]
     Json(#[from] serde_json::Error),
@@ -67,8 +70,9 @@ fn bincode_config() -> impl bincode::config::Config {
 /// Encodes `value` in `encoding`.
 pub fn encode<T: Serialize>(encoding: Encoding, value: &T) -> Result<Vec<u8>, CodecError> {
     match encoding {
-        Encoding::Bincode => bincode::serde::encode_to_vec(value, bincode_config())
-            .map_err(|e| CodecError::Bincode(e.to_string())),
+        Encoding::Bincode => {
+            bincode::serde::encode_to_vec(value, bincode_config()).map_err(CodecError::BincodeEncode)
+        }
         Encoding::Json => Ok(serde_json::to_vec(value)?),
     }
 }
@@ -81,7 +85,7 @@ pub fn decode<T: DeserializeOwned>(encoding: Encoding, bytes: &[u8]) -> Result<T
     match encoding {
         Encoding::Bincode => {
             let (value, used) = bincode::serde::decode_from_slice(bytes, bincode_config())
-                .map_err(|e| CodecError::Bincode(e.to_string()))?;
+                .map_err(CodecError::BincodeDecode)?;
             if used != bytes.len() {
                 return Err(CodecError::TrailingBytes(bytes.len() - used));
             }

@@ -5,7 +5,7 @@ pub mod child;
 
 use anyhow::{bail, Result};
 use rangegp_client::{Client, ScanPublisher};
-use rangegp_lab::scangen::ScanGenerator;
+use rangegp_lab::scangen::{GeneratedScan, ScanGenerator};
 use rangegp_proto::msg::StatusReply;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
@@ -76,6 +76,15 @@ impl Harness {
             publisher_id,
             4096,
         )?)
+    }
+
+    /// Publishes `scan` and waits (bounded) until the daemon has fitted it. The intake is
+    /// newest-wins by design, so a test about N maps publishes them one at a time.
+    pub fn publish_fitted(&self, publisher: &mut ScanPublisher, scan: &GeneratedScan) -> Result<()> {
+        let before = self.client.status()?.scans_accepted;
+        publisher.publish(scan.header, &scan.points)?;
+        self.wait_status("the scan fitted", |s| s.scans_accepted > before)?;
+        Ok(())
     }
 
     /// Polls status until `done` holds (bounded by [`WAIT`]).

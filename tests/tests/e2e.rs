@@ -13,7 +13,7 @@ fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
     let mut poses = Vec::new();
     for i in 0..5 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
         poses.push((scan.pose, w.path.waypoints[i][2]));
     }
     let status = h.wait_status("5 accepted scans", |s| s.scans_accepted == 5)?;
@@ -58,7 +58,7 @@ fn ray_from_a_pose_never_visited_meets_the_ground_truth() -> anyhow::Result<()> 
     let mut last = None;
     for i in 0..3 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
         last = Some((scan.pose, w.path.waypoints[i][2]));
     }
     h.wait_status("3 accepted scans", |s| s.scans_accepted == 3)?;
@@ -103,7 +103,7 @@ fn online_hyperparameters_are_learned_off_the_ingest_path() -> anyhow::Result<()
     let mut w = world(12, 6);
     for i in 0..6 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
     }
     let s = h.wait_status("six scans and at least one hyperparameter update", |s| {
         s.scans_accepted == 6 && s.hyperparameter_updates >= 1

@@ -15,7 +15,7 @@ fn a_grid_larger_than_64_kib_matches_point_queries_and_the_ground_truth() -> any
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for i in 0..4 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
         let s = scan.pose.translation.vector;
         for k in 0..2 {
             lo[k] = lo[k].min(s[k] - 10.0);
@@ -80,7 +80,7 @@ fn a_json_grid_equals_point_queries_at_every_cell_centre() -> anyhow::Result<()>
     let mut w = world(9, 4);
     for i in 0..4 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
     }
     // The maps stop changing: the grid and the point queries read the same snapshot.
     h.wait_status("4 scans in window and aggregate", |s| {

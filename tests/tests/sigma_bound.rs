@@ -22,7 +22,7 @@ fn answers_wider_than_the_bound_are_refused_with_their_reason() -> anyhow::Resul
     let mut last = None;
     for i in 0..2 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
         last = Some(scan.pose);
     }
     h.wait_status("2 accepted scans", |s| s.scans_accepted == 2)?;

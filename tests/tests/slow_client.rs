@@ -84,7 +84,7 @@ fn a_frozen_client_does_not_stall_other_clients_batches() -> Result<()> {
     let mut w = world(9, 4);
     for i in 0..4 {
         let scan = w.scan(i, now_ns());
-        publisher.publish(scan.header, &scan.points)?;
+        h.publish_fitted(&mut publisher, &scan)?;
     }
     h.wait_status("four scans", |s| s.scans_accepted == 4)?;
     // A healthy grid takes milliseconds; before the fix the frozen client held the workers for

@@ -206,13 +206,18 @@ fn cargo_tree(package: &str, depth: Option<u32>) -> Vec<String> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let mut cmd = Command::new(cargo);
-    cmd.current_dir(&root)
-        .args(["tree", "--frozen", "-e", "normal", "--prefix", "none", "-p", package]);
+    cmd.current_dir(&root).args([
+        "tree", "--frozen", "-e", "normal", "--prefix", "none", "-p", package,
+    ]);
     if let Some(d) = depth {
         cmd.args(["--depth", &d.to_string()]);
     }
     let out = cmd.output().expect("run cargo tree");
-    assert!(out.status.success(), "cargo tree: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "cargo tree: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     String::from_utf8_lossy(&out.stdout)
         .lines()
         .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
@@ -221,10 +226,8 @@ fn cargo_tree(package: &str, depth: Option<u32>) -> Vec<String> {
 
 #[test]
 fn the_crate_edges_in_the_architecture_document_are_cargo_s() {
-    let doc = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/ARCHITECTURE.md"),
-    )
-    .expect("read ARCHITECTURE.md");
+    let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/ARCHITECTURE.md"))
+        .expect("read ARCHITECTURE.md");
     let block = doc
         .split("```crate-edges\n")
         .nth(1)
@@ -233,7 +236,12 @@ fn the_crate_edges_in_the_architecture_document_are_cargo_s() {
     let documented: BTreeMap<String, BTreeSet<String>> = block
         .lines()
         .filter_map(|l| l.split_once(" -> "))
-        .map(|(from, to)| (from.to_owned(), to.split_whitespace().map(str::to_owned).collect()))
+        .map(|(from, to)| {
+            (
+                from.to_owned(),
+                to.split_whitespace().map(str::to_owned).collect(),
+            )
+        })
         .collect();
     for package in ["proto", "transport", "sim", "client", "service", "lab", "tests"] {
         let name = format!("rangegp-{package}");
@@ -256,7 +264,17 @@ fn the_daemon_links_no_lab_code_and_a_planner_no_simulator_or_pictures() {
     };
     forbidden(
         "rangegp-service",
-        &["rangegp-sim", "rangegp-client", "image", "colorous", "indicatif", "plotters"],
+        &[
+            "rangegp-sim",
+            "rangegp-client",
+            "image",
+            "colorous",
+            "indicatif",
+            "plotters",
+        ],
     );
-    forbidden("rangegp-client", &["rangegp-sim", "image", "colorous", "plotters"]);
+    forbidden(
+        "rangegp-client",
+        &["rangegp-sim", "image", "colorous", "plotters"],
+    );
 }

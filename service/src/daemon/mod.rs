@@ -232,7 +232,10 @@ impl DaemonBuilder {
         daemon.exporter = match config.metrics.listen.as_str() {
             "" => None,
             listen => Exporter::start(listen, Arc::clone(&state))
-                .inspect_err(|e| warn!(error = %e, "running without prometheus metrics"))
+                .inspect_err(|e| {
+                    let e: &dyn std::error::Error = e;
+                    warn!(error = e, "running without prometheus metrics");
+                })
                 .ok(),
         };
         daemon.ingest = Some(spawn_ingest(

@@ -29,15 +29,16 @@ use zenoh::Wait;
 #[derive(Debug, Error)]
 pub enum ServerError {
     /// A queryable or the liveliness token could not be declared.
-    #[error("cannot declare {what}: {reason}")]
+    #[error("cannot declare {what}")]
     Declare {
         /// Key expression.
         what: String,
-        /// Zenoh's reason.
-        reason: String,
+        /// Zenoh's error.
+        #[source]
+        source: zenoh::Error,
     },
     /// A worker thread could not be spawned.
-    #[error("cannot spawn a query worker: {0}")]
+    #[error("cannot spawn a query worker")]
     Spawn(#[from] std::io::Error),
 }
 
@@ -111,9 +112,9 @@ impl QueryServer {
                     }
                 })
                 .wait()
-                .map_err(|e| ServerError::Declare {
+                .map_err(|source| ServerError::Declare {
                     what: key.clone(),
-                    reason: e.to_string(),
+                    source,
                 })?;
             queryables.push(q);
         }
@@ -132,9 +133,9 @@ impl QueryServer {
                     }
                 })
                 .wait()
-                .map_err(|e| ServerError::Declare {
+                .map_err(|source| ServerError::Declare {
                     what: echo.clone(),
-                    reason: e.to_string(),
+                    source,
                 })?,
         );
         let alive = state.keys.alive();
@@ -142,9 +143,9 @@ impl QueryServer {
             .liveliness()
             .declare_token(&alive)
             .wait()
-            .map_err(|e| ServerError::Declare {
+            .map_err(|source| ServerError::Declare {
                 what: alive.clone(),
-                reason: e.to_string(),
+                source,
             })?;
         info!(map = state.keys.map_id(), "queryables declared");
         Ok(Self {
