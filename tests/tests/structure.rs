@@ -72,7 +72,15 @@ fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
     let mut edges = BTreeSet::new();
     for (module, path) in &files {
         let text = std::fs::read_to_string(path).expect("read");
-        let code = text.split("#[cfg(test)]").next().unwrap_or("");
+        // Non-test code without comments (a doc link is not a dependency).
+        let code: String = text
+            .split("#[cfg(test)]")
+            .next()
+            .unwrap_or("")
+            .lines()
+            .map(|l| l.split("//").next().unwrap_or(""))
+            .collect::<Vec<_>>()
+            .join("\n");
         let is_dir_module = path.file_name().is_some_and(|f| f == "mod.rs" || f == "lib.rs");
         let parent: Module = if is_dir_module {
             module
@@ -83,8 +91,8 @@ fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
         } else {
             module[..module.len() - 1].to_vec()
         };
-        let targets = paths_after(code, "crate::").into_iter().chain(
-            paths_after(code, "super::")
+        let targets = paths_after(&code, "crate::").into_iter().chain(
+            paths_after(&code, "super::")
                 .into_iter()
                 .map(|p| parent.iter().cloned().chain(p).collect::<Module>()),
         );

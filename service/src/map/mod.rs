@@ -9,6 +9,7 @@ pub mod local;
 pub mod prior;
 pub mod query;
 pub mod root;
+pub mod scales;
 #[cfg(test)]
 mod test_support;
 pub mod tiles;

@@ -1,8 +1,8 @@
 //! The rolling window of recent local maps and the immutable snapshot queries read.
 
 use super::aggregate::world::WorldAggregate;
-use super::calibration::SigmaScales;
 use super::local::LocalRangeMap;
+use super::scales::SigmaScales;
 use std::collections::VecDeque;
 use std::sync::Arc;
 

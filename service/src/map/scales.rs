@@ -1,0 +1,185 @@
+//! The learnt σ factors a snapshot applies to its answers, and their lookup: per (source,
+//! grazing class, range bin), each a function of the answer's own σ, interpolated so that σ never
+//! jumps. [`super::calibration`] learns them; queries and the snapshot only read them.
+
+use super::local::HeightEstimate;
+use rangegp_proto::msg::Source;
+
+/// Upper edges of the range bins, metres of horizontal distance from the answering sensor (the
+/// last bin is open-ended). Doubling widths: the error of a range map grows with range.
+pub const RANGE_EDGES_M: [f64; 6] = [2.5, 5.0, 10.0, 20.0, 40.0, 80.0];
+/// Number of range bins.
+pub const BINS: usize = RANGE_EDGES_M.len() + 1;
+
+/// How many groups of a bin's residuals, by the answer's own σ, get a scale each.
+pub const SIGMA_GROUPS: usize = 5;
+
+/// The σ scale of one range bin as a function of the answer's own σ: each group of residuals
+/// (equal counts, by σ) has a scale at its median log σ; between medians the scale is linear in
+/// log σ (see [`BinScale::factor`] beyond them). Answers the map itself is surer of can be more or less
+/// overconfident than the rest, and one factor per bin cannot right both.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BinScale {
+    /// Median ln σ of each group, ascending (equal when the bin has few residuals).
+    pub(super) log_sd: [f64; SIGMA_GROUPS],
+    /// Factor on σ of each group.
+    pub(super) scale: [f64; SIGMA_GROUPS],
+}
+
+impl Default for BinScale {
+    fn default() -> Self {
+        Self {
+            // Below every σ: the factor is 1 everywhere.
+            log_sd: [f64::NEG_INFINITY; SIGMA_GROUPS],
+            scale: [1.0; SIGMA_GROUPS],
+        }
+    }
+}
+
+impl BinScale {
+    /// How wide these scales make σ (the factor at σ = 1 mm), to choose between two equally
+    /// near fills of an empty cell.
+    pub(super) fn width(&self) -> f64 {
+        self.factor(1e-3)
+    }
+
+    /// The factor on an answer of standard deviation `sd`. Below the surest group's median the
+    /// calibrated σ stays at that group's (the map is never trusted to be surer than the surest
+    /// answers the scans tested); above the widest group's, that group's factor holds.
+    pub fn factor(&self, sd: f64) -> f64 {
+        let x = sd.max(1e-12).ln();
+        let (l, s) = (&self.log_sd, &self.scale);
+        if x <= l[0] {
+            return s[0];
+        }
+        for k in 1..SIGMA_GROUPS {
+            if x <= l[k] {
+                let w = if l[k] > l[k - 1] {
+                    (x - l[k - 1]) / (l[k] - l[k - 1])
+                } else {
+                    1.0
+                };
+                return (s[k - 1].ln() * (1.0 - w) + s[k].ln() * w).exp();
+            }
+        }
+        s[SIGMA_GROUPS - 1]
+    }
+}
+
+/// Upper edges of the grazing classes (an answer's [`HeightEstimate::grazing`]; the last class
+/// is open-ended and holds every answer that is not near a shadow, the aggregate's included).
+pub const GRAZING_EDGES: [f64; 2] = [0.5, 0.75];
+/// Number of grazing classes.
+pub const CLASSES: usize = GRAZING_EDGES.len() + 1;
+/// Where each grazing class's scale holds exactly; between them it is interpolated in ln g.
+const GRAZING_CENTRES: [f64; CLASSES] = [0.354, 0.612, 1.0];
+
+/// σ scales of one source, by grazing class and range bin.
+pub type ScaleTable = [[BinScale; BINS]; CLASSES];
+
+/// Per (source, grazing class, range bin) σ scales; what a snapshot applies to its answers.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SigmaScales {
+    /// Window answers.
+    pub window: ScaleTable,
+    /// Aggregate answers (range from the newest sensor position; all in the last class).
+    pub aggregate: ScaleTable,
+}
+
+impl SigmaScales {
+    /// The factor on σ (not σ²) for an answer `estimate` of `source` at horizontal distance
+    /// `rho_m`. Between the centres of neighbouring range bins and grazing classes the factor is
+    /// interpolated bilinearly in (ln ρ, ln g), so that σ never jumps at an edge.
+    pub fn factor(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+        let table = match source {
+            Source::Aggregate => &self.aggregate,
+            _ => &self.window,
+        };
+        let sd = estimate.var.max(0.0).sqrt();
+        let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
+        let (b0, b1, wb) = bracket(rho_m, &rho_centres);
+        let (c0, c1, wc) = bracket(estimate.grazing, &GRAZING_CENTRES);
+        let ln = |c: usize, b: usize| table[c][b].factor(sd).ln();
+        let lower = ln(c0, b0) * (1.0 - wb) + ln(c0, b1) * wb;
+        let upper = ln(c1, b0) * (1.0 - wb) + ln(c1, b1) * wb;
+        (lower * (1.0 - wc) + upper * wc).exp()
+    }
+}
+
+/// The neighbouring `centres` (ascending) around `x` and the weight of the upper, linear in ln x;
+/// beyond the ends, the end alone.
+fn bracket(x: f64, centres: &[f64]) -> (usize, usize, f64) {
+    let last = centres.len() - 1;
+    let Some(upper) = centres.iter().position(|&c| x <= c) else {
+        return (last, last, 0.0);
+    };
+    if upper == 0 {
+        return (0, 0, 0.0);
+    }
+    let (lo, hi) = (centres[upper - 1].ln(), centres[upper].ln());
+    (upper - 1, upper, (x.max(1e-12).ln() - lo) / (hi - lo))
+}
+
+/// A range bin's centre: the geometric middle of its edges (the first bin's: half its edge; the
+/// open last bin's: √2 × its lower edge).
+fn bin_centre_m(bin: usize) -> f64 {
+    match bin {
+        0 => 0.5 * RANGE_EDGES_M[0],
+        k if k == BINS - 1 => RANGE_EDGES_M[k - 1] * std::f64::consts::SQRT_2,
+        k => (RANGE_EDGES_M[k - 1] * RANGE_EDGES_M[k]).sqrt(),
+    }
+}
+
+/// The range bin of horizontal distance `rho_m`.
+pub fn bin_of(rho_m: f64) -> usize {
+    RANGE_EDGES_M.iter().take_while(|&&e| rho_m >= e).count()
+}
+
+/// The grazing class of an answer's grazing fraction.
+pub fn class_of(grazing: f64) -> usize {
+    GRAZING_EDGES.iter().take_while(|&&e| grazing >= e).count()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_factor_is_continuous_across_range_bins_grazing_classes_and_sigma_groups() {
+        let mut scales = SigmaScales::default();
+        for (c, row) in scales.window.iter_mut().enumerate() {
+            for (k, b) in row.iter_mut().enumerate() {
+                b.log_sd = [-6.0, -5.0, -4.0, -3.0, -2.0];
+                b.scale = std::array::from_fn(|g| 1.0 + k as f64 + 0.5 * g as f64 + 2.0 * c as f64);
+            }
+        }
+        let at = |rho: f64, grazing: f64, sd: f64| {
+            let e = HeightEstimate {
+                z: 0.0,
+                var: sd * sd,
+                grazing,
+            };
+            scales.factor(Source::Window, rho, &e)
+        };
+        let rhos = RANGE_EDGES_M.iter().copied().chain((0..BINS).map(bin_centre_m));
+        let grazings = GRAZING_EDGES.iter().chain(GRAZING_CENTRES.iter()).copied();
+        for rho in rhos {
+            for sd in [1e-3, (-4.5f64).exp(), 0.05, 1.0] {
+                let jump = (at(rho - 1e-9, 0.8, sd) - at(rho + 1e-9, 0.8, sd)).abs();
+                assert!(jump < 1e-6, "jump at ρ {rho}, σ {sd}");
+                let jump = (at(rho, 0.8, sd * (1.0 - 1e-9)) - at(rho, 0.8, sd)).abs();
+                assert!(jump < 1e-6, "jump at σ {sd}");
+            }
+        }
+        for g in grazings {
+            let jump = (at(7.0, g - 1e-9, 0.01) - at(7.0, g + 1e-9, 0.01)).abs();
+            assert!(jump < 1e-6, "jump at grazing {g}");
+        }
+        // At a cell's centres its own factor holds; far from any shadow, the last class's.
+        let (c, b) = (1, 3);
+        let f = at(bin_centre_m(b), GRAZING_CENTRES[c], 0.05);
+        assert!((f - scales.window[c][b].factor(0.05)).abs() < 1e-9);
+        let f = at(bin_centre_m(b), f64::INFINITY, 0.05);
+        assert!((f - scales.window[CLASSES - 1][b].factor(0.05)).abs() < 1e-9);
+    }
+}
