@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 
 
 def main() -> int:

@@ -95,6 +95,11 @@ pub struct LoadSummary {
     pub scans_skipped: u64,
     /// Scans the daemon rejected (status delta).
     pub scans_rejected: u64,
+    /// Accepted scans the aggregate did not fuse: displaced from its queue or in a failed insert
+    /// (status delta).
+    pub scans_not_fused: u64,
+    /// The daemon's aggregate insert (all scans waiting at once) p50 / p99, milliseconds.
+    pub daemon_aggregate_insert_ms: [f64; 2],
     /// Scans sent whose map update never arrived here.
     pub scans_without_update: u64,
     /// Publish to map-update received, median, milliseconds.
@@ -412,6 +417,11 @@ pub fn run(opts: &LoadOptions, log: impl Fn(&str)) -> Result<LoadSummary> {
         scans_accepted: delta(|s| s.scans_accepted).saturating_sub(1),
         scans_skipped: delta(|s| s.scans_skipped),
         scans_rejected: delta(|s| s.scans_rejected),
+        scans_not_fused: delta(|s| s.aggregate.skipped + s.aggregate.failed),
+        daemon_aggregate_insert_ms: [
+            end_status.aggregate_insert_ms.p50_ms,
+            end_status.aggregate_insert_ms.p99_ms,
+        ],
         scans_without_update: without,
         scan_to_queryable_p50_ms: pct(&mut latencies, 0.5),
         scan_to_queryable_p99_ms: pct(&mut latencies, 0.99),
@@ -496,6 +506,10 @@ pub fn print(s: &LoadSummary, out: &std::path::Path) {
         s.scan_to_queryable_max_ms,
         s.daemon_scan_to_queryable_p99_ms,
         s.daemon_fit_ms[0]
+    );
+    println!(
+        "  aggregate: not fused / insert p50 / p99     {} / {:.1} / {:.1} ms",
+        s.scans_not_fused, s.daemon_aggregate_insert_ms[0], s.daemon_aggregate_insert_ms[1]
     );
     let mut kinds: Vec<_> = s.rtt.iter().collect();
     kinds.sort_by_key(|(k, _)| k.as_str());

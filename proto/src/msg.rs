@@ -35,6 +35,22 @@ pub enum Refusal {
     TooUncertain,
 }
 
+/// How much data stands behind an answer, by the distance from the answered point to the
+/// nearest datum of the answering map (a training return's footprint for a window map, a fused
+/// cell's centre for the aggregate), in units of that map's correlation length ℓ.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Provenance {
+    /// Within 0.3 ℓ of a datum (kernel correlation ≥ 0.9): the point lies in data a scan measured.
+    Observed,
+    /// Within ℓ of a datum: between data, within the model's correlation length.
+    Interpolated,
+    /// Farther than ℓ from every datum: the model's smooth continuation, not data.
+    Extrapolated,
+    /// No answer.
+    None,
+}
+
 /// One elevation answer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ElevationItem {
@@ -42,10 +58,15 @@ pub struct ElevationItem {
     pub z_m: Option<f64>,
     /// Variance of `z_m`, square metres (latent surface, sensor noise excluded).
     pub z_var_m2: Option<f64>,
+    /// Per-axis standard deviations (x, y, z) of the surface point the answering sensor's ray
+    /// meets there, metres (seed 000 Table I: s_r |w_x|, s_r |w_y|, s_r |w_z| along the ray's
+    /// unit direction w; calibrated like `z_var_m2`). The aggregate, a height field, gives
+    /// (0, 0, σ_z).
+    pub point_sigma_m: Option<[f64; 3]>,
     /// Which map answered.
     pub source: Source,
-    /// True when the point lies inside the field of view the answering map observed.
-    pub observed: bool,
+    /// How much data stands behind the answer (`none` without one).
+    pub provenance: Provenance,
     /// Why there is no value (`None` when there is one).
     pub refusal: Option<Refusal>,
 }
@@ -115,12 +136,18 @@ pub struct RayItem {
     pub range_m: Option<f64>,
     /// Variance of `range_m`, square metres.
     pub range_var_m2: Option<f64>,
-    /// Probability that the ray meets the surface before `max_range_m`.
-    pub hit_probability: f64,
+    /// Probability that the ray meets the surface before `max_range_m`; `None` when no map knows
+    /// anything along the ray (not 0: unknown is not free).
+    pub hit_probability: Option<f64>,
     /// Expected hit point in the map frame, metres.
     pub hit_point_m: Option<[f64; 3]>,
+    /// Per-axis standard deviations (x, y, z) of the hit point, metres: σ_range |d| along the
+    /// ray's unit direction d.
+    pub hit_sigma_m: Option<[f64; 3]>,
     /// Which map answered.
     pub source: Source,
+    /// How much data stands behind the hit (`none` without a hit).
+    pub provenance: Provenance,
 }
 
 /// Ray answers, one per request ray.
@@ -163,6 +190,8 @@ pub struct GridReply {
     pub elevation_m: Vec<Option<f32>>,
     /// Variance of the height per cell, square metres.
     pub variance_m2: Vec<Option<f32>>,
+    /// How much data stands behind each cell's answer.
+    pub provenance: Vec<Provenance>,
 }
 
 impl GridRequest {

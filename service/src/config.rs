@@ -233,24 +233,21 @@ pub struct AggregateConfig {
     /// Fold fitted scans into the aggregate (its own thread) and answer from it where no window
     /// map sees a point.
     pub enabled: bool,
-    /// Fitted scans waiting for the aggregate at most; when it falls behind, the newest wins and
-    /// the displaced ones are counted (the window still holds them).
+    /// Fitted scans waiting for the aggregate at most. It fuses every scan that waited in one
+    /// insert, so this is reached only when it falls this many scans behind; then the oldest
+    /// waiting scan is displaced and counted as not fused (the window still holds it).
     pub queue_len: usize,
     /// Tiles farther than this from the newest sensor position are evicted (bounds memory:
     /// about (2r / 2.5 m)² tiles of ≤ 0.15 MB each), metres.
     pub radius_m: f64,
-    /// At most one insert per this interval, milliseconds: the aggregate takes the newest fitted
-    /// scan at its own pace so that it never competes with the fitter for a whole core.
-    pub min_interval_ms: u64,
 }
 
 impl Default for AggregateConfig {
     fn default() -> Self {
         Self {
             enabled: true,
-            queue_len: 1,
+            queue_len: 64,
             radius_m: 30.0,
-            min_interval_ms: 1000,
         }
     }
 }

@@ -190,7 +190,6 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
     };
     base.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
     base.metrics.listen = String::new();
-    base.aggregate.min_interval_ms = 250;
     base.checkpoint.dir = Some(dir.join("checkpoints"));
     base.checkpoint.interval_ms = 250;
     let params = WorldParams::default();
@@ -372,7 +371,6 @@ fn every_corrupted_checkpoint_is_rejected_and_the_daemon_starts() -> Result<()> 
     let ckpt = dir.join("checkpoints");
     // A real checkpoint: a daemon maps a few scans and shuts down (the final write).
     let h = Harness::start(|c| {
-        c.aggregate.min_interval_ms = 0;
         c.aggregate.queue_len = 8;
         c.checkpoint.dir = Some(ckpt.clone());
     })?;

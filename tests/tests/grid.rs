@@ -73,7 +73,6 @@ fn a_grid_larger_than_64_kib_matches_point_queries_and_the_ground_truth() -> any
 #[test]
 fn a_json_grid_equals_point_queries_at_every_cell_centre() -> anyhow::Result<()> {
     let h = Harness::start(|c| {
-        c.aggregate.min_interval_ms = 0;
         c.aggregate.queue_len = 8;
     })?;
     let mut publisher = h.publisher(6)?;

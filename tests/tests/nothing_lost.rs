@@ -56,7 +56,6 @@ fn a_scan_at_a_far_pose_is_refused_and_every_mapped_point_survives_a_restart() -
         c.map_id = map_id.clone();
         c.checkpoint.dir = Some(dir.clone());
         c.checkpoint.interval_ms = 20;
-        c.aggregate.min_interval_ms = 0;
         c.aggregate.queue_len = 16;
     };
     let h = Harness::start(tweak)?;

@@ -3,7 +3,7 @@
 //! never as a number; ground no map saw is refused `unobserved`.
 
 use rangegp_lab::scangen::now_ns;
-use rangegp_proto::msg::{Refusal, Source};
+use rangegp_proto::msg::{Provenance, Refusal, Source};
 use rangegp_tests::{world, Harness};
 
 #[test]
@@ -48,10 +48,11 @@ fn answers_wider_than_the_bound_are_refused_with_their_reason() -> anyhow::Resul
                 given += 1;
             }
             (None, Some(Refusal::TooUncertain)) => {
-                assert!(item.z_m.is_none() && item.observed && item.source == Source::None);
+                assert!(item.z_m.is_none() && item.source == Source::None);
+                assert_eq!(item.provenance, Provenance::None);
                 too_uncertain += 1;
             }
-            (None, Some(Refusal::Unobserved)) => assert!(!item.observed),
+            (None, Some(Refusal::Unobserved)) => assert_eq!(item.provenance, Provenance::None),
             other => panic!("inconsistent item {item:?} ({other:?})"),
         }
     }
@@ -61,8 +62,8 @@ fn answers_wider_than_the_bound_are_refused_with_their_reason() -> anyhow::Resul
     );
     let far = &items[60];
     assert_eq!(
-        (far.refusal, far.observed, far.z_m),
-        (Some(Refusal::Unobserved), false, None)
+        (far.refusal, far.provenance, far.z_m),
+        (Some(Refusal::Unobserved), Provenance::None, None)
     );
 
     // Variance answers refuse the same points for the same reason.

@@ -28,7 +28,6 @@ fn scrape(addr: std::net::SocketAddr) -> anyhow::Result<String> {
 #[test]
 fn every_scan_is_announced_and_counted_in_status_and_prometheus() -> anyhow::Result<()> {
     let h = Harness::start(|c| {
-        c.aggregate.min_interval_ms = 0;
         c.aggregate.queue_len = 8;
     })?;
     let updates: Arc<Mutex<Vec<MapUpdate>>> = Arc::default();
@@ -87,10 +86,26 @@ fn every_scan_is_announced_and_counted_in_status_and_prometheus() -> anyhow::Res
 }
 
 #[test]
+fn every_accepted_scan_is_fused_even_when_the_aggregate_lags() -> anyhow::Result<()> {
+    let h = Harness::start(|_| {})?;
+    let mut publisher = h.publisher(7)?;
+    let mut w = world(21, 12);
+    // Fitting takes milliseconds, an aggregate insert tens: it falls behind and must catch up
+    // by fusing the waiting scans together, not by dropping them.
+    for i in 0..12 {
+        let scan = w.scan(i, now_ns());
+        h.publish_fitted(&mut publisher, &scan)?;
+    }
+    let s = h.wait_status("every scan fused", |s| s.aggregate.inserts == 12)?;
+    assert_eq!((s.aggregate.skipped, s.aggregate.failed), (0, 0));
+    assert_eq!(s.scans_accepted, 12);
+    Ok(())
+}
+
+#[test]
 fn the_aggregate_forgets_what_lies_beyond_its_radius() -> anyhow::Result<()> {
     let h = Harness::start(|c| {
         c.window.capacity = 2;
-        c.aggregate.min_interval_ms = 0;
         c.aggregate.queue_len = 16;
         c.aggregate.radius_m = 12.0;
     })?;

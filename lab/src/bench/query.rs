@@ -3,6 +3,7 @@
 
 use super::gp::scans;
 use anyhow::Result;
+use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Ray;
@@ -48,6 +49,11 @@ pub struct QueryReport {
     pub ray_us: f64,
     /// Elevation from the aggregate alone.
     pub aggregate_elevation_us: f64,
+    /// Ray over the aggregate alone (the same rays).
+    pub aggregate_ray_us: f64,
+    /// One scan fused into the aggregate on one thread, as the daemon's aggregate thread does
+    /// (median over the window's scans), milliseconds.
+    pub aggregate_insert_ms: f64,
     /// One elevation after the caches were flushed (median): a lone planner query, which finds
     /// none of the map in cache because fitting and batches ran in between.
     pub elevation_cold_us: f64,
@@ -97,11 +103,17 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
     let inputs = scans(&terrain, &preset, config.window.capacity, 7)?;
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());
+    // The daemon fuses on a one-thread pool of its own: time the inserts the same way.
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    let mut insert_ms = Vec::new();
     for scan in &inputs {
         let map = LocalRangeMap::fit(scan, &params)?;
-        world.insert(scan, &map)?;
+        let t = Instant::now();
+        one_thread.install(|| world.insert(scan, &map))?;
+        insert_ms.push(t.elapsed().as_secs_f64() * 1e3);
         window.push(Arc::new(map));
     }
+    insert_ms.sort_by(f64::total_cmp);
     let world = Arc::new(world);
     let snapshot = window.snapshot().with_aggregate(Some(Arc::clone(&world)));
     let mut rng = Pcg64::seed_from_u64(11);
@@ -154,6 +166,13 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
                 std::hint::black_box(world.elevation(p[0], p[1]));
             })
         }),
+        aggregate_ray_us: per_item_us(opts.repeats, n, || {
+            rays.iter().for_each(|r| {
+                let (o, d) = (Vector3::from(r.origin_m), Vector3::from(r.direction).normalize());
+                std::hint::black_box(world.cast(o, d, r.max_range_m));
+            })
+        }),
+        aggregate_insert_ms: insert_ms[insert_ms.len() / 2],
         elevation_cold_us: cold_us(&points, |p| {
             std::hint::black_box(query::elevation(&snapshot, p[0], p[1]));
         }),
@@ -180,5 +199,10 @@ pub fn print_query(r: &QueryReport) {
     println!("  variance             {:>8.1} µs", r.variance_us);
     println!("  ray (unvisited pose) {:>8.1} µs", r.ray_us);
     println!("  aggregate elevation  {:>8.1} µs", r.aggregate_elevation_us);
+    println!("  aggregate ray        {:>8.1} µs", r.aggregate_ray_us);
+    println!(
+        "  aggregate insert     {:>8.1} ms per scan (one thread)",
+        r.aggregate_insert_ms
+    );
     println!("  elevation, cold cache {:>7.1} µs", r.elevation_cold_us);
 }

@@ -1,4 +1,6 @@
-//! The aggregate thread: folds fitted scans into the world aggregate and publishes each result.
+//! The aggregate thread: folds every fitted scan into the world aggregate and publishes the
+//! result. When it falls behind, the scans that waited meanwhile are fused together in one
+//! insert (each tile refitted once), so it catches up instead of dropping scans.
 
 use super::AggregateFeed;
 use crate::map::aggregate::world::WorldAggregate;
@@ -11,25 +13,16 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
 
-/// How the aggregate thread paces itself and bounds its area.
-#[derive(Debug, Clone, Copy)]
-pub(super) struct AggregatePace {
-    /// Evict tiles beyond this distance from the newest sensor position, metres.
-    pub radius_m: f64,
-    /// At most one insert per interval.
-    pub min_interval: Duration,
-}
-
-/// Folds fitted scans into the world aggregate at most once per `pace.min_interval`, newest
-/// first: each insert goes into a copy of the published map (tiles are shared, so a copy costs
-/// the cells), tiles beyond `pace.radius_m` of the sensor are evicted (never by a scan far from
-/// everything mapped: [`WorldAggregate::insert_and_evict`]), and the copy is published. A failed
-/// insert is counted and logged; the published map stays as it was.
+/// Folds every fitted scan from `feed` into the world aggregate: each insert takes all the
+/// scans waiting (in order) into a copy of the published map (tiles are shared, so a copy costs
+/// the cells), evicts tiles beyond `radius_m` of the newest sensor (never by a scan far from
+/// everything mapped: [`WorldAggregate::insert_all_and_evict`]), and publishes the copy. A
+/// failed insert is counted per scan (not fused) and logged; the published map stays as it was.
 pub(super) fn aggregate_loop(
     feed: &AggregateFeed,
     state: &DaemonState,
     mut world: Arc<WorldAggregate>,
-    pace: AggregatePace,
+    radius_m: f64,
     shutdown: &Shutdown,
 ) {
     let m = &state.metrics;
@@ -49,28 +42,33 @@ pub(super) fn aggregate_loop(
         }
     };
     while !shutdown.is_triggered() {
-        let Some((scan, map)) = feed.pop_timeout(Duration::from_millis(50)) else {
+        let batch = feed.drain_timeout(Duration::from_millis(50));
+        let Some((newest, _)) = batch.last() else {
             continue;
         };
         let _span = info_span!(
             "aggregate",
-            publisher = scan.publisher_id,
-            sequence = scan.sequence
+            publisher = newest.publisher_id,
+            sequence = newest.sequence,
+            scans = batch.len()
         )
         .entered();
         let started = Instant::now();
         let mut next = WorldAggregate::clone(&world);
-        match pool.install(|| next.insert_and_evict(&scan, &map, pace.radius_m)) {
+        let scans: Vec<_> = batch.iter().map(|(scan, map)| (scan, map.as_ref())).collect();
+        let n = batch.len() as u64;
+        match pool.install(|| next.insert_all_and_evict(&scans, radius_m)) {
             Ok(evicted) => {
                 world = Arc::new(next);
                 state
                     .snapshot
                     .rcu(|old| old.with_aggregate(Some(Arc::clone(&world))));
                 m.aggregate_insert.record(started.elapsed());
-                m.aggregate_inserts.fetch_add(1, Ordering::Relaxed);
+                m.aggregate_inserts.fetch_add(n, Ordering::Relaxed);
                 m.aggregate_evicted_tiles
                     .fetch_add(evicted as u64, Ordering::Relaxed);
                 debug!(
+                    scans = n,
                     cells = world.len(),
                     tiles = world.tiles(),
                     evicted,
@@ -78,10 +76,9 @@ pub(super) fn aggregate_loop(
                 );
             }
             Err(e) => {
-                m.aggregate_failed.fetch_add(1, Ordering::Relaxed);
-                warn!(error = %e, "aggregate insert failed; scan kept in the window only");
+                m.aggregate_failed.fetch_add(n, Ordering::Relaxed);
+                warn!(error = %e, scans = n, "aggregate insert failed; the scans stay in the window only");
             }
         }
-        shutdown.sleep_until(started + pace.min_interval);
     }
 }

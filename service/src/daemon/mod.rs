@@ -20,7 +20,7 @@ use crate::scan::ScanInput;
 use crate::server::{QueryServer, ServerError, MAX_REQUEST_BYTES};
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
-use aggregate::{aggregate_loop, AggregatePace};
+use aggregate::aggregate_loop;
 use arc_swap::ArcSwap;
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
@@ -165,15 +165,12 @@ impl DaemonBuilder {
         let aggregate_feed = if config.aggregate.enabled {
             let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
-            let pace = AggregatePace {
-                radius_m: config.aggregate.radius_m,
-                min_interval: Duration::from_millis(config.aggregate.min_interval_ms),
-            };
+            let radius_m = config.aggregate.radius_m;
             let start = world
                 .clone()
                 .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
-                aggregate_loop(&rx, &state, start, pace, &shutdown);
+                aggregate_loop(&rx, &state, start, radius_m, &shutdown);
             })?);
             Some(feed)
         } else {

@@ -102,6 +102,17 @@ impl<const D: usize> ExactGp<D> {
         self.kernel.weighted_sum(x, &self.inputs, &self.alpha)
     }
 
+    /// Euclidean distance from `x` to the nearest training input (O(n); infinite without any).
+    pub fn nearest_input_distance(&self, x: &[f64; D]) -> f64 {
+        let mut d2 = vec![0.0; self.inputs.len()];
+        for (k, xk) in x.iter().enumerate() {
+            for (d, c) in d2.iter_mut().zip(self.inputs.coord(k)) {
+                *d += (c - xk) * (c - xk);
+            }
+        }
+        d2.into_iter().fold(f64::INFINITY, f64::min).sqrt()
+    }
+
     /// Posterior mean and latent variance k(x,x) − ‖L⁻¹ k*‖² at `x` (O(n²)); never negative.
     ///
     /// The kernel column in one vector pass, then a column-oriented forward substitution over

@@ -36,6 +36,16 @@ impl<T> LatestQueue<T> {
         dropped
     }
 
+    /// Takes every waiting item, oldest first, waiting at most `timeout` for the first.
+    pub fn drain_timeout(&self, timeout: Duration) -> Vec<T> {
+        let items = self.items.lock().unwrap_or_else(PoisonError::into_inner);
+        let (mut items, _) = self
+            .ready
+            .wait_timeout_while(items, timeout, |q| q.is_empty())
+            .unwrap_or_else(PoisonError::into_inner);
+        items.drain(..).collect()
+    }
+
     /// Takes the oldest waiting item, waiting at most `timeout`.
     pub fn pop_timeout(&self, timeout: Duration) -> Option<T> {
         let items = self.items.lock().unwrap_or_else(PoisonError::into_inner);
@@ -60,5 +70,15 @@ mod tests {
         assert_eq!(q.pop_timeout(Duration::ZERO), Some(2));
         assert_eq!(q.pop_timeout(Duration::ZERO), Some(3));
         assert_eq!(q.pop_timeout(Duration::from_millis(1)), None);
+    }
+
+    #[test]
+    fn a_drain_takes_everything_waiting_in_order() {
+        let q = LatestQueue::new(4);
+        for i in 1..=3 {
+            q.push(i);
+        }
+        assert_eq!(q.drain_timeout(Duration::ZERO), vec![1, 2, 3]);
+        assert!(q.drain_timeout(Duration::from_millis(1)).is_empty());
     }
 }

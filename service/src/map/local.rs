@@ -8,6 +8,7 @@ use super::tiles::{TiledGp, Tiling, TrainingRay};
 use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
 use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
+use rangegp_proto::msg::Provenance;
 use std::f64::consts::FRAC_PI_2;
 use thiserror::Error;
 
@@ -116,6 +117,11 @@ pub struct HeightEstimate {
     /// which they would meet flat ground from the same distance (infinite where not measured):
     /// small near the edge of a shadow, where the surface is the map's smoothing of a jump.
     pub grazing: f64,
+    /// Per-axis σ (x, y, z) of the surface point along the sensor's ray there, metres (seed 000
+    /// Table I); a height field's is (0, 0, σ_z).
+    pub point_sd: [f64; 3],
+    /// How much data stands behind the estimate.
+    pub provenance: Provenance,
 }
 
 /// A predicted hit along a ray.
@@ -127,6 +133,25 @@ pub struct RayEstimate {
     pub range_var: Option<f64>,
     /// Probability that the surface is met before the max range.
     pub hit_probability: f64,
+    /// How much data stands behind the hit (`None` without a hit).
+    pub provenance: Provenance,
+}
+
+/// Within this fraction of the correlation length of a datum, an answer is `observed`: a
+/// Matérn-3/2 kernel correlates it with that datum at 0.9 or more.
+pub const OBSERVED_FRACTION: f64 = 0.3;
+
+/// The provenance of an answer `distance_m` from the nearest datum of a model whose
+/// correlation length is `length_m`: observed within [`OBSERVED_FRACTION`] of it, interpolated
+/// within it, extrapolated beyond.
+pub fn provenance_of(distance_m: f64, length_m: f64) -> Provenance {
+    if distance_m <= OBSERVED_FRACTION * length_m {
+        Provenance::Observed
+    } else if distance_m <= length_m {
+        Provenance::Interpolated
+    } else {
+        Provenance::Extrapolated
+    }
 }
 
 /// One scan's range GP, placed in the map frame by the scan's pose.
@@ -146,6 +171,8 @@ pub struct LocalRangeMap {
     max_range: f64,
     fov: FieldOfView,
     gp: TiledGp,
+    /// The kernel's length scale, kernel-input metres (what provenance is graded against).
+    length_scale: f64,
 }
 
 /// Inclination step of the shadow test's range derivative, radians (0.1°).
@@ -181,6 +208,7 @@ impl LocalRangeMap {
             max_range: scan.max_range_m,
             fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
             gp,
+            length_scale: params.kernel.length_scale,
         })
     }
 
@@ -305,11 +333,19 @@ impl LocalRangeMap {
             return None;
         }
         let var = self.root_variance(gap, &p, root)?;
+        let (inc, az, _) = self.look_at(&p)?;
         Some(HeightEstimate {
             z: top - root.t,
             var,
             grazing,
+            point_sd: self.point(inc, az).1,
+            provenance: self.provenance_at(inc, az),
         })
+    }
+
+    /// How much training data stands behind the prediction along (θ, φ).
+    fn provenance_at(&self, inclination: f64, azimuth: f64) -> Provenance {
+        provenance_of(self.gp.nearest_datum(inclination, azimuth), self.length_scale)
     }
 
     /// The angle at which the rays meet the predicted surface at `p`, as a fraction of the angle
@@ -403,10 +439,12 @@ impl LocalRangeMap {
             let t = root.t;
             let var = self.root_variance(gap, &point(t), root)?;
             let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
+            let (inc, az, _) = self.look_at(&point(t))?;
             return Some(RayEstimate {
                 range: Some(t),
                 range_var: Some(var),
                 hit_probability,
+                provenance: self.provenance_at(inc, az),
             });
         }
         // No crossing: the hit probability is set by the closest approach to the surface.
@@ -426,6 +464,7 @@ impl LocalRangeMap {
             range: None,
             range_var: None,
             hit_probability: normal_cdf(g / var_r.sqrt().max(1e-12)),
+            provenance: Provenance::None,
         })
     }
 }
@@ -562,6 +601,16 @@ mod tests {
     use crate::map::test_support::{params, scan_of};
     use nalgebra::{Translation3, UnitQuaternion};
     use rangegp_sim::{CraterParams, Heightmap};
+
+    #[test]
+    fn provenance_grades_distance_against_the_correlation_length() {
+        assert_eq!(provenance_of(0.0, 1.0), Provenance::Observed);
+        assert_eq!(provenance_of(0.3, 1.0), Provenance::Observed);
+        assert_eq!(provenance_of(0.31, 1.0), Provenance::Interpolated);
+        assert_eq!(provenance_of(1.0, 1.0), Provenance::Interpolated);
+        assert_eq!(provenance_of(1.01, 1.0), Provenance::Extrapolated);
+        assert_eq!(provenance_of(f64::INFINITY, 1.0), Provenance::Extrapolated);
+    }
 
     #[test]
     fn flat_ground_is_recovered_exactly_and_unseen_places_are_refused() {

@@ -6,7 +6,7 @@ use super::tiles::smoothstep;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
-use rangegp_proto::msg::{ElevationItem, Ray, RayItem, Refusal, Source, VarianceItem};
+use rangegp_proto::msg::{ElevationItem, Provenance, Ray, RayItem, Refusal, Source, VarianceItem};
 use std::sync::Arc;
 
 /// How many of the nearest window maps are asked per query point (the least uncertain wins).
@@ -133,22 +133,24 @@ fn search(
 /// `max_sigma_m` is refused `too_uncertain`: a number that wide would claim knowledge the maps do
 /// not have.
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
-    let refused = |observed: bool, refusal: Refusal| ElevationItem {
+    let refused = |refusal: Refusal| ElevationItem {
         z_m: None,
         z_var_m2: None,
+        point_sigma_m: None,
         source: Source::None,
-        observed,
+        provenance: Provenance::None,
         refusal: Some(refusal),
     };
     let Some((first, second)) = blended_elevation(snapshot, x, y) else {
-        return refused(false, Refusal::Unobserved);
+        return refused(Refusal::Unobserved);
     };
     let source = match first.by {
         Answerer::Window(_) => Source::Window,
         Answerer::Aggregate => Source::Aggregate,
     };
+    let factor = |a: &RawAnswer| snapshot.scales.factor(source, a.rho_m, &a.estimate);
     let calibrated = |a: &RawAnswer| {
-        let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
+        let s = factor(a);
         (a.estimate.z, a.estimate.var * s * s)
     };
     let (z1, v1) = calibrated(&first);
@@ -167,13 +169,16 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         .partial_cmp(&snapshot.max_sigma_m)
         .is_some_and(|o| o.is_le());
     if !within {
-        return refused(true, Refusal::TooUncertain);
+        return refused(Refusal::TooUncertain);
     }
+    // The primary answer's (weight ≥ ½ in a blend): its sensor's ray and its data.
+    let s = factor(&first);
     ElevationItem {
         z_m: Some(z),
         z_var_m2: Some(var),
+        point_sigma_m: Some(first.estimate.point_sd.map(|v| v * s)),
         source,
-        observed: true,
+        provenance: first.estimate.provenance,
         refusal: None,
     }
 }
@@ -191,7 +196,11 @@ pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
     }
 }
 
-/// Casts one ray (already validated: finite, non-zero direction, positive range).
+/// Casts one ray (already validated: finite, non-zero direction, positive range) over the
+/// whole map: the nearest window maps first; where none of them meets the surface, the
+/// aggregate. Preference: a window hit (the surest of them), an aggregate hit, a window's
+/// no-hit (its hit probability from the closest approach), the aggregate's no-hit; with no map
+/// knowing anything along the ray, no hit probability at all.
 pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     let origin = Vector3::from(ray.origin_m);
     let dir = Vector3::from(ray.direction).normalize();
@@ -207,30 +216,46 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         .take(CANDIDATES)
         .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m))
         .collect();
-    let hit = answers.iter().filter(|a| a.range.is_some()).min_by(|a, b| {
+    let window_hit = answers.iter().filter(|a| a.range.is_some()).min_by(|a, b| {
         a.range_var
             .unwrap_or(f64::INFINITY)
             .total_cmp(&b.range_var.unwrap_or(f64::INFINITY))
     });
-    let best = hit.or_else(|| {
-        answers
+    let answer = if let Some(hit) = window_hit {
+        Some((*hit, Source::Window))
+    } else {
+        let aggregate = snapshot
+            .aggregate
+            .as_ref()
+            .and_then(|a| a.cast(origin, dir, ray.max_range_m));
+        let window_miss = answers
             .iter()
-            .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability))
-    });
-    match best {
-        Some(a) => RayItem {
+            .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
+        match (aggregate, window_miss) {
+            (Some(a), _) if a.range.is_some() => Some((a, Source::Aggregate)),
+            (_, Some(w)) => Some((*w, Source::Window)),
+            (Some(a), None) => Some((a, Source::Aggregate)),
+            (None, None) => None,
+        }
+    };
+    match answer {
+        Some((a, source)) => RayItem {
             range_m: a.range,
             range_var_m2: a.range_var,
-            hit_probability: a.hit_probability,
+            hit_probability: Some(a.hit_probability),
             hit_point_m: a.range.map(|t| (origin + dir * t).into()),
-            source: Source::Window,
+            hit_sigma_m: a.range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
+            source,
+            provenance: a.provenance,
         },
         None => RayItem {
             range_m: None,
             range_var_m2: None,
-            hit_probability: 0.0,
+            hit_probability: None,
             hit_point_m: None,
+            hit_sigma_m: None,
             source: Source::None,
+            provenance: Provenance::None,
         },
     }
 }
@@ -368,12 +393,19 @@ mod tests {
         let refused = elevation(&bounded, ahead.x, ahead.y);
         assert_eq!((refused.z_m, refused.z_var_m2), (None, None));
         assert_eq!(refused.refusal, Some(Refusal::TooUncertain));
-        assert!(refused.observed);
+        assert_eq!(
+            (refused.provenance, refused.point_sigma_m),
+            (Provenance::None, None)
+        );
+        assert_ne!(answered.provenance, Provenance::None);
         assert_eq!(
             variance(&bounded, ahead.x, ahead.y).refusal,
             Some(Refusal::TooUncertain)
         );
         let far = elevation(&snapshot, ahead.x + 500.0, ahead.y);
-        assert_eq!((far.refusal, far.observed), (Some(Refusal::Unobserved), false));
+        assert_eq!(
+            (far.refusal, far.provenance),
+            (Some(Refusal::Unobserved), Provenance::None)
+        );
     }
 }

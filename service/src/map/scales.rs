@@ -158,6 +158,8 @@ mod tests {
                 z: 0.0,
                 var: sd * sd,
                 grazing,
+                point_sd: [0.0, 0.0, sd],
+                provenance: rangegp_proto::msg::Provenance::Observed,
             };
             scales.factor(Source::Window, rho, &e)
         };

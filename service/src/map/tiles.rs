@@ -276,6 +276,30 @@ impl TiledGp {
         self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
     }
 
+    /// Distance, in kernel-input metres, from direction (θ, φ) to the nearest training ray of
+    /// the experts that answer there (what [`super::local::provenance_of`] grades).
+    pub fn nearest_datum(&self, inclination: f64, azimuth: f64) -> f64 {
+        let x = self.embedding.point(inclination, azimuth);
+        let rel = self.grid.rel_phi(azimuth);
+        let mut nearest = f64::INFINITY;
+        let mut fallback = None;
+        for (r, c) in self.grid.candidates(inclination, rel) {
+            let Some(gp) = &self.experts[r * self.grid.cols + c] else {
+                continue;
+            };
+            fallback.get_or_insert(gp);
+            if self.grid.weight(r, c, inclination, rel) > 0.0 {
+                nearest = nearest.min(gp.nearest_input_distance(&x));
+            }
+        }
+        if nearest.is_finite() {
+            return nearest;
+        }
+        fallback
+            .or_else(|| self.experts.iter().flatten().next())
+            .map_or(f64::INFINITY, |gp| gp.nearest_input_distance(&x))
+    }
+
     /// Blended residual mean and variance (mixture of the covering experts).
     pub fn mean_variance(&self, inclination: f64, azimuth: f64) -> (f64, f64) {
         let x = self.embedding.point(inclination, azimuth);

@@ -140,6 +140,7 @@ fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
         rows: rows as u32,
         elevation_m: items.iter().map(|i| i.z_m.map(|z| z as f32)).collect(),
         variance_m2: items.iter().map(|i| i.z_var_m2.map(|v| v as f32)).collect(),
+        provenance: items.iter().map(|i| i.provenance).collect(),
     })
 }
 

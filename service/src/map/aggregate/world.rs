@@ -11,8 +11,11 @@
 use super::{Aggregate, AggregateError};
 use crate::gp::{JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
-use crate::map::local::{HeightEstimate, LocalRangeMap};
+use crate::map::local::{normal_cdf, provenance_of, HeightEstimate, LocalRangeMap, RayEstimate};
+use crate::map::root;
 use crate::scan::ScanInput;
+use nalgebra::Vector3;
+use rangegp_proto::msg::Provenance;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap, VecDeque};
@@ -169,28 +172,105 @@ impl WorldAggregate {
         self.refits
     }
 
-    /// Folds a scan in, then evicts the tiles beyond `radius_m` of its sensor, but only when the
-    /// map held a tile within that radius before the insert. A scan far from everything mapped
-    /// (a pose glitch, or the first scan of a relocalised robot) adds its tiles and evicts
-    /// nothing, so no single scan can empty the map. Returns how many tiles were evicted.
+    /// Folds a scan in, then evicts the tiles beyond `radius_m` of its sensor: see
+    /// [`Self::insert_all_and_evict`].
     pub fn insert_and_evict(
         &mut self,
         scan: &ScanInput,
         local: &LocalRangeMap,
         radius_m: f64,
     ) -> Result<usize, AggregateError> {
-        let s = local.sensor_position();
+        self.insert_all_and_evict(&[(scan, local)], radius_m)
+    }
+
+    /// Folds every scan of `batch` in (in order; each tile they touch is refitted once), then
+    /// evicts the tiles beyond `radius_m` of the last scan's sensor, but only when the map held
+    /// a tile within that radius before the insert. A scan far from everything mapped (a pose
+    /// glitch, or the first scan of a relocalised robot) adds its tiles and evicts nothing, so no
+    /// single scan can empty the map. Returns how many tiles were evicted; an empty batch does
+    /// nothing.
+    pub fn insert_all_and_evict(
+        &mut self,
+        batch: &[(&ScanInput, &LocalRangeMap)],
+        radius_m: f64,
+    ) -> Result<usize, AggregateError> {
+        let Some((_, newest)) = batch.last() else {
+            return Ok(0);
+        };
+        let s = newest.sensor_position();
         let connected = self.tiles.is_empty()
             || self
                 .tiles
                 .keys()
                 .any(|&t| self.tile_distance(t, s.x, s.y) <= radius_m);
-        self.insert(scan, local)?;
+        self.insert_all(batch)?;
         Ok(if connected {
             self.evict_beyond(s.x, s.y, radius_m)
         } else {
             0
         })
+    }
+
+    /// Folds every scan of `batch` in, in order: each scan's predicted cell heights are fused
+    /// by inverse variance, then every tile any of them touched is refitted once (a batch costs
+    /// the cells of each scan but the refits of one). On a failed refit the aggregate keeps the
+    /// fused cells and the tiles it had; the caller publishes a copy only on success.
+    pub fn insert_all(&mut self, batch: &[(&ScanInput, &LocalRangeMap)]) -> Result<(), AggregateError> {
+        let mut dirty = BTreeSet::new();
+        for (scan, local) in batch {
+            for (c, e) in self.predicted_cells(local) {
+                let cell = self.cells.entry(c).or_insert(Cell {
+                    z: e.z,
+                    var: e.var,
+                    scans: 0,
+                });
+                if cell.scans > 0 {
+                    let var = 1.0 / (1.0 / cell.var + 1.0 / e.var);
+                    cell.z = var * (cell.z / cell.var + e.z / e.var);
+                    cell.var = var;
+                }
+                cell.scans += 1;
+                dirty.extend(self.tiles_covering(c));
+            }
+            self.inserts += 1;
+            if self.history.len() == HISTORY_LEN {
+                self.history.pop_front();
+            }
+            self.history.push_back(ScanRef {
+                publisher_id: scan.publisher_id,
+                sequence: scan.sequence,
+                stamp_ns: scan.stamp_ns,
+            });
+        }
+        self.refit(dirty)
+    }
+
+    /// The cells within reach of `local`'s sensor whose height it predicts surely enough to fuse
+    /// (σ ≤ `max_cell_sd_m`), in parallel on the current rayon pool.
+    fn predicted_cells(&self, local: &LocalRangeMap) -> Vec<((i32, i32), HeightEstimate)> {
+        let s = local.sensor_position();
+        let reach = local.max_range().min(self.params.max_reach_m);
+        let (lo, hi) = (
+            self.cell_of(s.x - reach, s.y - reach),
+            self.cell_of(s.x + reach, s.y + reach),
+        );
+        let candidates: Vec<(i32, i32)> = (lo.0..=hi.0)
+            .flat_map(|i| (lo.1..=hi.1).map(move |j| (i, j)))
+            .collect();
+        let max_var = self.params.max_cell_sd_m.powi(2);
+        candidates
+            .par_iter()
+            .filter_map(|&c| {
+                let (x, y) = self.centre(c);
+                if (x - s.x).hypot(y - s.y) >= reach {
+                    return None;
+                }
+                local
+                    .elevation(x, y)
+                    .filter(|e| e.var <= max_var && e.var > 0.0)
+                    .map(|e| (c, e))
+            })
+            .collect()
     }
 
     /// Distance from tile `t`'s centre to map (x, y), metres.
@@ -303,16 +383,70 @@ impl WorldAggregate {
         ramp(x, ti) * ramp(y, tj)
     }
 
-    fn near_a_cell(&self, x: f64, y: f64) -> bool {
+    /// Distance from map (x, y) to the nearest fused cell's centre, if one lies within
+    /// `max_gap_m`.
+    fn nearest_cell(&self, x: f64, y: f64) -> Option<f64> {
         let (ci, cj) = self.cell_of(x, y);
         let reach = (self.params.max_gap_m / self.params.cell_m).ceil() as i32;
-        let r2 = self.params.max_gap_m * self.params.max_gap_m;
-        (-reach..=reach).any(|di| {
-            (-reach..=reach).any(|dj| {
+        let mut nearest = f64::INFINITY;
+        for di in -reach..=reach {
+            for dj in -reach..=reach {
                 let key = (ci + di, cj + dj);
-                let (cx, cy) = self.centre(key);
-                self.cells.contains_key(&key) && (cx - x).powi(2) + (cy - y).powi(2) <= r2
+                if self.cells.contains_key(&key) {
+                    let (cx, cy) = self.centre(key);
+                    nearest = nearest.min((cx - x).hypot(cy - y));
+                }
+            }
+        }
+        (nearest <= self.params.max_gap_m).then_some(nearest)
+    }
+
+    /// Casts a map-frame ray (unit `dir`) over the aggregate's surface up to `max_range`: the
+    /// first crossing of the ray below the fused heights (sampled every half cell, then
+    /// refined), its variance by the delta method through the height's, and the probability of
+    /// a hit before `max_range`. Only ground within a correlation length of fused cells counts
+    /// (observed or interpolated). `None` when the aggregate knows the ground nowhere along the
+    /// ray. Without a crossing, the hit probability is set by the ray's closest approach to the
+    /// surface (in σ of the height there), as for a local map; a ray that first meets known
+    /// ground already below it crossed the surface in ground the aggregate does not know: its
+    /// hit probability is then near 1 and no range is given.
+    pub fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<RayEstimate> {
+        let point = |t: f64| origin + dir * t;
+        // Positive below the surface, negative above it: a crossing from − to + is a hit. Only
+        // ground within a correlation length of data counts: beyond it the surface is the
+        // tiles' smooth continuation, and a ray must not stop on it.
+        let known = |x: f64, y: f64| {
+            self.elevation(x, y)
+                .filter(|e| e.provenance != Provenance::Extrapolated)
+        };
+        let gap = |t: f64| {
+            let p = point(t);
+            known(p.x, p.y).map(|e| e.z - p.z)
+        };
+        let samples = ((max_range / (0.5 * self.params.cell_m)).ceil() as usize).clamp(8, 4000);
+        if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
+            let hit = point(root.t);
+            let e = known(hit.x, hit.y)?;
+            let var = root::root_variance(gap, root, e.var)?;
+            return Some(RayEstimate {
+                range: Some(root.t),
+                range_var: Some(var),
+                hit_probability: normal_cdf((max_range - root.t) / var.sqrt().max(1e-12)),
+                provenance: e.provenance,
+            });
+        }
+        let closest = (0..=samples)
+            .filter_map(|k| {
+                let p = point(max_range * k as f64 / samples as f64);
+                self.elevation(p.x, p.y)
+                    .map(|e| (e.z - p.z) / e.var.sqrt().max(1e-12))
             })
+            .reduce(f64::max)?;
+        Some(RayEstimate {
+            range: None,
+            range_var: None,
+            hit_probability: normal_cdf(closest),
+            provenance: Provenance::None,
         })
     }
 }
@@ -323,61 +457,11 @@ impl Aggregate for WorldAggregate {
     }
 
     fn insert(&mut self, scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
-        let s = local.sensor_position();
-        let reach = local.max_range().min(self.params.max_reach_m);
-        let (lo, hi) = (
-            self.cell_of(s.x - reach, s.y - reach),
-            self.cell_of(s.x + reach, s.y + reach),
-        );
-        let candidates: Vec<(i32, i32)> = (lo.0..=hi.0)
-            .flat_map(|i| (lo.1..=hi.1).map(move |j| (i, j)))
-            .collect();
-        let max_var = self.params.max_cell_sd_m.powi(2);
-        let seen: Vec<((i32, i32), HeightEstimate)> = candidates
-            .par_iter()
-            .filter_map(|&c| {
-                let (x, y) = self.centre(c);
-                if (x - s.x).hypot(y - s.y) >= reach {
-                    return None;
-                }
-                local
-                    .elevation(x, y)
-                    .filter(|e| e.var <= max_var && e.var > 0.0)
-                    .map(|e| (c, e))
-            })
-            .collect();
-        let mut dirty = BTreeSet::new();
-        for (c, e) in seen {
-            let cell = self.cells.entry(c).or_insert(Cell {
-                z: e.z,
-                var: e.var,
-                scans: 0,
-            });
-            if cell.scans > 0 {
-                let var = 1.0 / (1.0 / cell.var + 1.0 / e.var);
-                cell.z = var * (cell.z / cell.var + e.z / e.var);
-                cell.var = var;
-            }
-            cell.scans += 1;
-            dirty.extend(self.tiles_covering(c));
-        }
-        self.refit(dirty)?;
-        self.inserts += 1;
-        if self.history.len() == HISTORY_LEN {
-            self.history.pop_front();
-        }
-        self.history.push_back(ScanRef {
-            publisher_id: scan.publisher_id,
-            sequence: scan.sequence,
-            stamp_ns: scan.stamp_ns,
-        });
-        Ok(())
+        self.insert_all(&[(scan, local)])
     }
 
     fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
-        if !self.near_a_cell(x, y) {
-            return None;
-        }
+        let datum_m = self.nearest_cell(x, y)?;
         let (ti, tj) = self.tile_of(self.cell_of(x, y));
         let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
         for di in -1..=1 {
@@ -395,10 +479,13 @@ impl Aggregate for WorldAggregate {
         }
         (wsum > 0.0).then(|| {
             let z = m1 / wsum;
+            let var = (m2 / wsum - z * z).max(0.0);
             HeightEstimate {
                 z,
-                var: (m2 / wsum - z * z).max(0.0),
+                var,
                 grazing: f64::INFINITY,
+                point_sd: [0.0, 0.0, var.sqrt()],
+                provenance: provenance_of(datum_m, self.params.length_scale),
             }
         })
     }
@@ -423,6 +510,70 @@ mod tests {
         let scan = scan_of(terrain, pose);
         let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
         agg.insert(&scan, &local).expect("insert");
+    }
+
+    /// An aggregate whose cells are exactly a flat 4 m × 4 m block at height 0.2 m, cells
+    /// (0..16, 0..16) of 0.25 m.
+    fn block() -> WorldAggregate {
+        let cells = (0..16)
+            .flat_map(|i| {
+                (0..16).map(move |j| {
+                    (
+                        (i, j),
+                        Cell {
+                            z: 0.2,
+                            var: 1e-4,
+                            scans: 1,
+                        },
+                    )
+                })
+            })
+            .collect();
+        WorldAggregate::from_state(WorldState {
+            params: WorldParams::default(),
+            cells,
+            inserts: 1,
+            history: Vec::new(),
+        })
+        .expect("refit")
+    }
+
+    #[test]
+    fn provenance_follows_the_distance_to_the_nearest_fused_cell() {
+        let agg = block();
+        let at = |x: f64, y: f64| agg.elevation(x, y).map(|e| e.provenance);
+        // On a cell centre, and at a cell corner (0.18 m from four centres, within 0.3 ℓ).
+        assert_eq!(at(2.125, 2.125), Some(Provenance::Observed));
+        assert_eq!(at(2.0, 2.0), Some(Provenance::Observed));
+        // Beyond the block's edge (the last centres are at 3.875 m): 0.5 m, 0.7 m, 0.8 m out.
+        assert_eq!(at(4.375, 2.125), Some(Provenance::Interpolated));
+        assert_eq!(at(4.575, 2.125), Some(Provenance::Extrapolated));
+        assert_eq!(at(4.675, 2.125), None);
+        let e = agg.elevation(2.125, 2.125).expect("inside");
+        assert!((e.z - 0.2).abs() < 1e-3 && e.point_sd == [0.0, 0.0, e.var.sqrt()]);
+    }
+
+    #[test]
+    fn a_ray_meets_the_fused_surface_where_geometry_says() {
+        let agg = block();
+        // From 1 m above the block's middle, 45° down along +x: the surface at z = 0.2 is met
+        // 0.8 m down, i.e. after 0.8·√2 m.
+        let origin = Vector3::new(1.0, 2.0, 1.0);
+        let dir = Vector3::new(1.0, 0.0, -1.0).normalize();
+        let hit = agg.cast(origin, dir, 5.0).expect("known ground");
+        let t = hit.range.expect("a hit");
+        assert!((t - 0.8 * 2f64.sqrt()).abs() < 5e-3, "range {t}");
+        assert!(hit.hit_probability > 0.99 && hit.range_var.is_some_and(|v| v > 0.0));
+        assert_eq!(hit.provenance, Provenance::Observed);
+        // Level and above the surface: no crossing, a small hit probability, not none.
+        let miss = agg
+            .cast(Vector3::new(0.5, 2.0, 1.0), Vector3::x(), 3.0)
+            .expect("known ground");
+        assert!(miss.range.is_none() && miss.hit_probability < 1e-6);
+        // Over nothing the aggregate knows: no answer at all.
+        assert!(agg
+            .cast(Vector3::new(50.0, 50.0, 1.0), Vector3::x(), 5.0)
+            .is_none());
     }
 
     #[test]
