@@ -100,6 +100,8 @@ pub struct LoadSummary {
     pub scans_not_fused: u64,
     /// The daemon's aggregate insert (all scans waiting at once) p50 / p99, milliseconds.
     pub daemon_aggregate_insert_ms: [f64; 2],
+    /// Reach each scan was fused out to at the end, metres.
+    pub daemon_aggregate_reach_m: f64,
     /// Scans sent whose map update never arrived here.
     pub scans_without_update: u64,
     /// Publish to map-update received, median, milliseconds.
@@ -422,6 +424,7 @@ pub fn run(opts: &LoadOptions, log: impl Fn(&str)) -> Result<LoadSummary> {
             end_status.aggregate_insert_ms.p50_ms,
             end_status.aggregate_insert_ms.p99_ms,
         ],
+        daemon_aggregate_reach_m: end_status.aggregate.reach_m,
         scans_without_update: without,
         scan_to_queryable_p50_ms: pct(&mut latencies, 0.5),
         scan_to_queryable_p99_ms: pct(&mut latencies, 0.99),
@@ -508,8 +511,11 @@ pub fn print(s: &LoadSummary, out: &std::path::Path) {
         s.daemon_fit_ms[0]
     );
     println!(
-        "  aggregate: not fused / insert p50 / p99     {} / {:.1} / {:.1} ms",
-        s.scans_not_fused, s.daemon_aggregate_insert_ms[0], s.daemon_aggregate_insert_ms[1]
+        "  aggregate: not fused / insert p50 / p99     {} / {:.1} / {:.1} ms  (reach {:.1} m)",
+        s.scans_not_fused,
+        s.daemon_aggregate_insert_ms[0],
+        s.daemon_aggregate_insert_ms[1],
+        s.daemon_aggregate_reach_m
     );
     let mut kinds: Vec<_> = s.rtt.iter().collect();
     kinds.sort_by_key(|(k, _)| k.as_str());

@@ -306,12 +306,15 @@ pub struct AggregateInfo {
     pub radius_m: f64,
     /// Scans folded in since start.
     pub inserts: u64,
-    /// Fitted scans the aggregate passed over (it takes the newest; the window still has them).
+    /// Fitted scans displaced from the aggregate's queue, not fused (the window still has them).
     pub skipped: u64,
     /// Inserts that failed (the aggregate kept its previous state).
     pub failed: u64,
     /// Tiles evicted for being beyond `radius_m`.
     pub evicted_tiles: u64,
+    /// Reach each scan is fused out to now, metres (shorter than 10 m when a fast sensor would
+    /// otherwise outrun `aggregate.cpu_share`; 0 before the first insert).
+    pub reach_m: f64,
 }
 
 /// The daemon's state and counters.

@@ -249,6 +249,12 @@ impl Collector for DaemonCollector {
             "Aggregate tiles evicted beyond the radius",
             m.aggregate_evicted_tiles.load(Relaxed),
         )?;
+        gauge(
+            e,
+            "aggregate_reach_meters",
+            "Reach each scan is fused out to now",
+            m.aggregate_reach_mm.load(Relaxed) as f64 * 1e-3,
+        )?;
         counter(
             e,
             "checkpoints_written",

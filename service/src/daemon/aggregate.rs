@@ -13,8 +13,65 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
 
-/// Folds every fitted scan from `feed` into the world aggregate: each insert takes all the
-/// scans waiting (in order) into a copy of the published map (tiles are shared, so a copy costs
+/// How far from its sensor each scan is fused, so that fusing keeps up with the sensor on a
+/// share of one core: the cost of a scan grows as the square of its reach, so with c the
+/// measured seconds per square metre of reach and f the scans per second arriving, the reach
+/// is √(share / (f c)), between [`MIN_REACH_M`] and the aggregate's `max_reach_m`. Every scan is
+/// fused; a fast sensor's scans each contribute their nearest (and surest) ground.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct FusionBudget {
+    /// Fraction of one core the aggregate may use (`aggregate.cpu_share`).
+    share: f64,
+    /// Longest reach, metres.
+    max_reach_m: f64,
+    /// Seconds of insert per m² of reach², smoothed.
+    cost: Option<f64>,
+    /// Scans per second, smoothed.
+    rate: Option<f64>,
+}
+
+/// The reach never falls below this (metres): the ground right around the robot.
+pub(super) const MIN_REACH_M: f64 = 3.0;
+/// Weight of a new measurement in the smoothed cost and rate.
+const SMOOTHING: f64 = 0.2;
+
+impl FusionBudget {
+    /// A budget of `share` of a core for reaches up to `max_reach_m`.
+    pub(super) fn new(share: f64, max_reach_m: f64) -> Self {
+        Self {
+            share,
+            max_reach_m,
+            cost: None,
+            rate: None,
+        }
+    }
+
+    /// The reach to fuse the next scans with.
+    pub(super) fn reach_m(&self) -> f64 {
+        match (self.cost, self.rate) {
+            (Some(c), Some(f)) if c > 0.0 && f > 0.0 => {
+                (self.share / (f * c)).sqrt().clamp(MIN_REACH_M, self.max_reach_m)
+            }
+            _ => self.max_reach_m,
+        }
+    }
+
+    /// Learns from an insert of `scans` at `reach_m` that took `took`, `since_last` after the
+    /// previous insert began.
+    pub(super) fn observe(&mut self, scans: usize, reach_m: f64, took: Duration, since_last: Duration) {
+        let smooth = |old: Option<f64>, new: f64| Some(old.map_or(new, |o| o + SMOOTHING * (new - o)));
+        let area = scans as f64 * reach_m * reach_m;
+        if area > 0.0 {
+            self.cost = smooth(self.cost, took.as_secs_f64() / area);
+        }
+        if since_last > Duration::ZERO {
+            self.rate = smooth(self.rate, scans as f64 / since_last.as_secs_f64());
+        }
+    }
+}
+
+/// Folds every fitted scan from `feed` into the world aggregate, each out to the reach `budget`
+/// allows: each insert takes all the scans waiting (in order) into a copy of the published map (tiles are shared, so a copy costs
 /// the cells), evicts tiles beyond `radius_m` of the newest sensor (never by a scan far from
 /// everything mapped: [`WorldAggregate::insert_all_and_evict`]), and publishes the copy. A
 /// failed insert is counted per scan (not fused) and logged; the published map stays as it was.
@@ -23,6 +80,7 @@ pub(super) fn aggregate_loop(
     state: &DaemonState,
     mut world: Arc<WorldAggregate>,
     radius_m: f64,
+    mut budget: FusionBudget,
     shutdown: &Shutdown,
 ) {
     let m = &state.metrics;
@@ -41,6 +99,7 @@ pub(super) fn aggregate_loop(
             return;
         }
     };
+    let mut last_start: Option<Instant> = None;
     while !shutdown.is_triggered() {
         let batch = feed.drain_timeout(Duration::from_millis(50));
         let Some((newest, _)) = batch.last() else {
@@ -54,10 +113,17 @@ pub(super) fn aggregate_loop(
         )
         .entered();
         let started = Instant::now();
+        let since_last = last_start.map_or(Duration::ZERO, |t| started - t);
+        last_start = Some(started);
+        let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
         let scans: Vec<_> = batch.iter().map(|(scan, map)| (scan, map.as_ref())).collect();
         let n = batch.len() as u64;
-        match pool.install(|| next.insert_all_and_evict(&scans, radius_m)) {
+        let inserted = pool.install(|| next.insert_all_and_evict(&scans, radius_m, reach_m));
+        budget.observe(batch.len(), reach_m, started.elapsed(), since_last);
+        m.aggregate_reach_mm
+            .store((reach_m * 1e3) as u64, Ordering::Relaxed);
+        match inserted {
             Ok(evicted) => {
                 world = Arc::new(next);
                 state
@@ -80,5 +146,29 @@ pub(super) fn aggregate_loop(
                 warn!(error = %e, scans = n, "aggregate insert failed; the scans stay in the window only");
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_reach_shrinks_as_the_rate_times_the_cost_grows_within_bounds() {
+        let mut b = FusionBudget::new(0.5, 10.0);
+        assert_eq!(b.reach_m(), 10.0, "full reach until measured");
+        // 50 ms for one scan at 10 m (0.5 ms per m²), one scan every 50 ms (20 Hz): half a core
+        // allows 25 ms per scan, i.e. a reach of 10 / √2.
+        for _ in 0..50 {
+            b.observe(1, 10.0, Duration::from_millis(50), Duration::from_millis(50));
+        }
+        assert!((b.reach_m() - 10.0 / 2f64.sqrt()).abs() < 0.05, "{}", b.reach_m());
+        // Slow scans: full reach; a flood: the floor.
+        let mut slow = FusionBudget::new(0.5, 10.0);
+        slow.observe(1, 10.0, Duration::from_millis(50), Duration::from_secs(1));
+        assert_eq!(slow.reach_m(), 10.0);
+        let mut flood = FusionBudget::new(0.5, 10.0);
+        flood.observe(100, 10.0, Duration::from_secs(5), Duration::from_millis(100));
+        assert_eq!(flood.reach_m(), MIN_REACH_M);
     }
 }

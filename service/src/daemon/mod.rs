@@ -20,7 +20,7 @@ use crate::scan::ScanInput;
 use crate::server::{QueryServer, ServerError, MAX_REQUEST_BYTES};
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
-use aggregate::aggregate_loop;
+use aggregate::{aggregate_loop, FusionBudget};
 use arc_swap::ArcSwap;
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
@@ -166,11 +166,12 @@ impl DaemonBuilder {
             let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
             let radius_m = config.aggregate.radius_m;
+            let budget = FusionBudget::new(config.aggregate.cpu_share, world_params.max_reach_m);
             let start = world
                 .clone()
                 .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
-                aggregate_loop(&rx, &state, start, radius_m, &shutdown);
+                aggregate_loop(&rx, &state, start, radius_m, budget, &shutdown);
             })?);
             Some(feed)
         } else {

@@ -49,12 +49,14 @@ pub struct Metrics {
     pub jittered_tiles: AtomicU64,
     /// Fitted scans folded into the aggregate.
     pub aggregate_inserts: AtomicU64,
-    /// Fitted scans the aggregate skipped because it fell behind (newest wins).
+    /// Fitted scans displaced from the aggregate's queue (it fell `aggregate.queue_len` behind).
     pub aggregate_skipped: AtomicU64,
     /// Fitted scans the aggregate could not fold in (its tile fit failed; the map keeps its state).
     pub aggregate_failed: AtomicU64,
     /// World-aggregate tiles evicted for lying beyond its radius.
     pub aggregate_evicted_tiles: AtomicU64,
+    /// Reach each scan is fused out to now, millimetres (the fusion budget's choice).
+    pub aggregate_reach_mm: AtomicU64,
     /// Checkpoints written.
     pub checkpoints_written: AtomicU64,
     /// Checkpoint writes that failed (disk full, I/O error); the daemon keeps running.
@@ -103,6 +105,7 @@ impl Default for Metrics {
             aggregate_skipped: AtomicU64::new(0),
             aggregate_failed: AtomicU64::new(0),
             aggregate_evicted_tiles: AtomicU64::new(0),
+            aggregate_reach_mm: AtomicU64::new(0),
             checkpoints_written: AtomicU64::new(0),
             checkpoint_failures: AtomicU64::new(0),
             checkpoints_rejected: AtomicU64::new(0),

@@ -260,6 +260,7 @@ fn status(state: &DaemonState) -> StatusReply {
             skipped: m.aggregate_skipped.load(Relaxed),
             failed: m.aggregate_failed.load(Relaxed),
             evicted_tiles: m.aggregate_evicted_tiles.load(Relaxed),
+            reach_m: m.aggregate_reach_mm.load(Relaxed) as f64 * 1e-3,
         },
         hyperparameters: {
             let k = state.kernel.load();

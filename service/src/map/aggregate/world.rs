@@ -42,6 +42,7 @@ pub struct WorldParams {
     pub max_gap_m: f64,
     /// Cells farther than this from the sensor are not fused, metres: beyond it a long-range
     /// sensor sees the ground at grazing angles (and the cells to visit grow as its square).
+    /// The daemon may fuse a shorter reach to keep up with the sensor's rate.
     pub max_reach_m: f64,
 }
 
@@ -180,10 +181,11 @@ impl WorldAggregate {
         local: &LocalRangeMap,
         radius_m: f64,
     ) -> Result<usize, AggregateError> {
-        self.insert_all_and_evict(&[(scan, local)], radius_m)
+        self.insert_all_and_evict(&[(scan, local)], radius_m, self.params.max_reach_m)
     }
 
-    /// Folds every scan of `batch` in (in order; each tile they touch is refitted once), then
+    /// Folds every scan of `batch` in, each out to `reach_m` of its sensor (at most
+    /// `max_reach_m`; in order; each tile they touch is refitted once), then
     /// evicts the tiles beyond `radius_m` of the last scan's sensor, but only when the map held
     /// a tile within that radius before the insert. A scan far from everything mapped (a pose
     /// glitch, or the first scan of a relocalised robot) adds its tiles and evicts nothing, so no
@@ -193,6 +195,7 @@ impl WorldAggregate {
         &mut self,
         batch: &[(&ScanInput, &LocalRangeMap)],
         radius_m: f64,
+        reach_m: f64,
     ) -> Result<usize, AggregateError> {
         let Some((_, newest)) = batch.last() else {
             return Ok(0);
@@ -203,7 +206,7 @@ impl WorldAggregate {
                 .tiles
                 .keys()
                 .any(|&t| self.tile_distance(t, s.x, s.y) <= radius_m);
-        self.insert_all(batch)?;
+        self.insert_all_within(batch, reach_m)?;
         Ok(if connected {
             self.evict_beyond(s.x, s.y, radius_m)
         } else {
@@ -216,9 +219,19 @@ impl WorldAggregate {
     /// the cells of each scan but the refits of one). On a failed refit the aggregate keeps the
     /// fused cells and the tiles it had; the caller publishes a copy only on success.
     pub fn insert_all(&mut self, batch: &[(&ScanInput, &LocalRangeMap)]) -> Result<(), AggregateError> {
+        self.insert_all_within(batch, self.params.max_reach_m)
+    }
+
+    /// [`Self::insert_all`] with each scan fused out to `reach_m` of its sensor (at most
+    /// `max_reach_m`): the cost of a scan grows as the square of its reach.
+    pub fn insert_all_within(
+        &mut self,
+        batch: &[(&ScanInput, &LocalRangeMap)],
+        reach_m: f64,
+    ) -> Result<(), AggregateError> {
         let mut dirty = BTreeSet::new();
         for (scan, local) in batch {
-            for (c, e) in self.predicted_cells(local) {
+            for (c, e) in self.predicted_cells(local, reach_m) {
                 let cell = self.cells.entry(c).or_insert(Cell {
                     z: e.z,
                     var: e.var,
@@ -245,11 +258,12 @@ impl WorldAggregate {
         self.refit(dirty)
     }
 
-    /// The cells within reach of `local`'s sensor whose height it predicts surely enough to fuse
-    /// (σ ≤ `max_cell_sd_m`), in parallel on the current rayon pool.
-    fn predicted_cells(&self, local: &LocalRangeMap) -> Vec<((i32, i32), HeightEstimate)> {
+    /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
+    /// sensor whose height it predicts surely enough to fuse (σ ≤ `max_cell_sd_m`), in parallel
+    /// on the current rayon pool.
+    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<((i32, i32), HeightEstimate)> {
         let s = local.sensor_position();
-        let reach = local.max_range().min(self.params.max_reach_m);
+        let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
         let (lo, hi) = (
             self.cell_of(s.x - reach, s.y - reach),
             self.cell_of(s.x + reach, s.y + reach),
