@@ -78,6 +78,23 @@ pub struct DemoSummary {
     pub grid_observed_fraction: f64,
 }
 
+/// A directory under the system's temporary directory, removed when dropped.
+struct TempDir(std::path::PathBuf);
+
+impl TempDir {
+    fn new(name: &str) -> Result<Self> {
+        let dir = std::env::temp_dir().join(format!("rangegp-{name}"));
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        Ok(Self(dir))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// Runs the demo end to end.
 pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
     let positive = |v: f64| v.is_finite() && v > 0.0;
@@ -94,6 +111,10 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
     config.zenoh.listen = vec![endpoint.clone()];
     config.window.capacity = opts.scans;
     config.metrics.listen = "127.0.0.1:0".into();
+    // Checkpoints and the site map as in production, in a directory of the demo's own that is
+    // removed at the end (not the user's state directory).
+    let state = TempDir::new(&map_id)?;
+    config.checkpoint.dir = Some(state.0.clone());
     let daemon = Daemon::builder(config.clone())
         .start()
         .context("starting the daemon")?;

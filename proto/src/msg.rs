@@ -315,6 +315,12 @@ pub struct AggregateInfo {
     /// Reach each scan is fused out to now, metres (shorter than 10 m when a fast sensor would
     /// otherwise outrun `aggregate.cpu_share`; 0 before the first insert).
     pub reach_m: f64,
+    /// Tiles written to the site map on disk when they left the radius (checkpoints on).
+    pub paged_out: u64,
+    /// Tiles read back from the site map when the robot returned.
+    pub paged_in: u64,
+    /// Tile pages that could not be written or read.
+    pub page_failures: u64,
 }
 
 /// The daemon's state and counters.

@@ -63,8 +63,12 @@ pub struct Config {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct CheckpointConfig {
-    /// Directory of the checkpoint files (one directory per map); unset: no checkpoints, the
-    /// aggregate starts empty at every start.
+    /// Keep the aggregate on disk: checkpoints of the tiles around the robot and the tiles it
+    /// left behind (the site map). Off: the aggregate starts empty at every start and tiles
+    /// beyond `aggregate.radius_m` are forgotten.
+    pub enabled: bool,
+    /// Directory of this map's files; unset: the state directory ([`default_state_dir`]) joined
+    /// with the map id.
     pub dir: Option<PathBuf>,
     /// A changed aggregate is written at most this often, milliseconds (and once at shutdown).
     pub interval_ms: u64,
@@ -75,6 +79,7 @@ pub struct CheckpointConfig {
 impl Default for CheckpointConfig {
     fn default() -> Self {
         Self {
+            enabled: true,
             dir: None,
             interval_ms: 250,
             keep: 2,
@@ -598,6 +603,18 @@ impl Config {
         Ok(())
     }
 
+    /// The directory of this map's checkpoints and paged tiles, `None` when they are off (or
+    /// no state directory can be named: no `$STATE_DIRECTORY`, `$XDG_STATE_HOME` nor `$HOME`).
+    pub fn checkpoint_dir(&self) -> Option<PathBuf> {
+        if !self.checkpoint.enabled {
+            return None;
+        }
+        self.checkpoint
+            .dir
+            .clone()
+            .or_else(|| default_state_dir().map(|d| d.join(&self.map_id)))
+    }
+
     /// The validated keys of this map.
     pub fn keys(&self) -> MapKeys {
         MapKeys::new(&self.map_id).unwrap_or_else(|e| panic!("config not validated: {e}"))
@@ -658,6 +675,20 @@ impl Config {
             variance_calibration: g.variance_calibration,
         }
     }
+}
+
+/// Where the daemon keeps its state when `checkpoint.dir` is unset: systemd's
+/// `$STATE_DIRECTORY` (the unit's `StateDirectory=`), else `$XDG_STATE_HOME/rangegp`, else
+/// `$HOME/.local/state/rangegp`.
+pub fn default_state_dir() -> Option<PathBuf> {
+    let var = |name: &str| {
+        std::env::var_os(name)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    var("STATE_DIRECTORY")
+        .or_else(|| var("XDG_STATE_HOME").map(|d| d.join("rangegp")))
+        .or_else(|| var("HOME").map(|h| h.join(".local/state/rangegp")))
 }
 
 #[cfg(test)]

@@ -249,6 +249,24 @@ impl Collector for DaemonCollector {
             "Aggregate tiles evicted beyond the radius",
             m.aggregate_evicted_tiles.load(Relaxed),
         )?;
+        counter(
+            e,
+            "aggregate_paged_out",
+            "Tiles written to the site map",
+            m.aggregate_paged_out.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_paged_in",
+            "Tiles read back from the site map",
+            m.aggregate_paged_in.load(Relaxed),
+        )?;
+        counter(
+            e,
+            "aggregate_page_failures",
+            "Tile pages not written or not read",
+            m.aggregate_page_failures.load(Relaxed),
+        )?;
         gauge(
             e,
             "aggregate_reach_meters",

@@ -55,6 +55,11 @@ impl Harness {
         config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
         config.metrics.listen = "127.0.0.1:0".into();
         tweak(&mut config);
+        // Checkpoints only where a test names its own directory: never in the user's state
+        // directory.
+        if config.checkpoint.dir.is_none() {
+            config.checkpoint.enabled = false;
+        }
         let daemon = Daemon::builder(config.clone()).start()?;
         let client = Client::builder(&config.map_id)
             .connect([endpoint.clone()])

@@ -66,6 +66,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
         map_id: unique_id("tls"),
         ..Config::default()
     };
+    config.checkpoint.enabled = false;
     config.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
     config.metrics.listen = String::new();
     config.zenoh.config_file = Some(daemon_config);

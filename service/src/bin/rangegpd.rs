@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
-use rangegp_service::checkpoint::Store;
+use rangegp_service::checkpoint::{PageStore, Store};
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use std::path::PathBuf;
@@ -77,12 +77,12 @@ fn main() -> Result<()> {
         Command::ResetCheckpoints { config } => {
             let config = Config::load(&config)?;
             let dir = config
-                .checkpoint
-                .dir
-                .context("the configuration sets no [checkpoint] dir")?;
+                .checkpoint_dir()
+                .context("checkpoints are off (checkpoint.enabled = false) or no state directory is known")?;
             let removed = Store::open(&dir, config.checkpoint.keep)?.reset()?;
+            let pages = PageStore::reset(&dir)?;
             println!(
-                "removed {removed} checkpoint generation(s) from {}",
+                "removed {removed} checkpoint generation(s) and {pages} paged tile(s) from {}",
                 dir.display()
             );
         }

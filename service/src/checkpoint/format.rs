@@ -8,15 +8,20 @@
 //! | 8 | payload length |
 //! | n | payload: [`Checkpoint`] in bincode (the protocol's codec) |
 //! | 8 | xxh3-64 of every byte before it |
+//!
+//! Paged-out tiles ([`super::pages`]) use the same frame with the magic `RGPTILE\0` and a
+//! [`super::pages::TilePage`] payload.
 
 use super::Checkpoint;
 use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 use thiserror::Error;
 
 /// First bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RGPCKPT\0";
 /// Layout version; bumped when [`Checkpoint`] changes.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 const HEADER_LEN: usize = 8 + 4 + 8 + 8;
 const TRAILER_LEN: usize = 8;
 
@@ -58,10 +63,20 @@ pub enum FormatError {
 
 /// Encodes `checkpoint` for the map with identity `identity`.
 pub fn encode(checkpoint: &Checkpoint, identity: u64) -> Result<Vec<u8>, FormatError> {
-    let payload =
-        codec::encode(Encoding::Bincode, checkpoint).map_err(|e| FormatError::Payload(e.to_string()))?;
+    encode_framed(MAGIC, checkpoint, identity)
+}
+
+/// Decodes a checkpoint, checking magic, version, identity, length and checksum before the
+/// payload is parsed.
+pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
+    decode_framed(MAGIC, bytes, identity)
+}
+
+/// Encodes `value` in the frame above with `magic`, for the map with identity `identity`.
+pub fn encode_framed<T: Serialize>(magic: [u8; 8], value: &T, identity: u64) -> Result<Vec<u8>, FormatError> {
+    let payload = codec::encode(Encoding::Bincode, value).map_err(|e| FormatError::Payload(e.to_string()))?;
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len() + TRAILER_LEN);
-    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&magic);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.extend_from_slice(&identity.to_le_bytes());
     out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
@@ -71,9 +86,13 @@ pub fn encode(checkpoint: &Checkpoint, identity: u64) -> Result<Vec<u8>, FormatE
     Ok(out)
 }
 
-/// Decodes a checkpoint, checking magic, version, identity, length and checksum before the
-/// payload is parsed.
-pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
+/// Decodes a value framed with `magic`, checking magic, version, identity, length and checksum
+/// before the payload is parsed.
+pub fn decode_framed<T: DeserializeOwned>(
+    magic: [u8; 8],
+    bytes: &[u8],
+    identity: u64,
+) -> Result<T, FormatError> {
     if bytes.len() < HEADER_LEN + TRAILER_LEN {
         return Err(FormatError::TooShort(bytes.len()));
     }
@@ -82,7 +101,7 @@ pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
         b.copy_from_slice(&bytes[at..at + 8]);
         u64::from_le_bytes(b)
     };
-    if bytes[..8] != MAGIC {
+    if bytes[..8] != magic {
         return Err(FormatError::BadMagic);
     }
     let mut v = [0u8; 4];

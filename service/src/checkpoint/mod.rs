@@ -5,12 +5,14 @@
 //! - [`store`]: generations on disk, written atomically (temp file, fsync, rename, fsync of the
 //!   directory), the newest valid one restored.
 //! - [`writer`]: the thread that writes the published aggregate when it changed.
+//! - [`pages`]: the site map: tiles beyond the radius, one file each, back when the robot is.
 //!
 //! A checkpoint holds what the daemon needs to resume its map: the aggregate's cells (tiles are
 //! refitted from them), the scans it folded in, and the online kernel hyperparameters. The
 //! window of local maps is not kept: it is rebuilt by the next scans within a second.
 
 pub mod format;
+pub mod pages;
 pub mod store;
 pub mod writer;
 
@@ -20,6 +22,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 pub use format::{decode, encode, FormatError};
+pub use pages::{PageError, PageStore};
 pub use store::{Restored, Store, StoreError};
 
 /// What one checkpoint holds.
@@ -108,16 +111,17 @@ impl Checkpoint {
 /// every file passed over and why. A directory that cannot be opened is logged and counted as a
 /// failure: the daemon then runs without checkpoints rather than not at all.
 pub fn resume(
-    config: &crate::config::CheckpointConfig,
+    dir: Option<&std::path::Path>,
+    keep: usize,
     map_id: &str,
     params: &WorldParams,
     metrics: &crate::metrics::Metrics,
 ) -> (Option<Store>, Option<Restored>) {
     use std::sync::atomic::Ordering::Relaxed;
-    let Some(dir) = &config.dir else {
+    let Some(dir) = dir else {
         return (None, None);
     };
-    let store = match Store::open(dir, config.keep) {
+    let store = match Store::open(dir, keep) {
         Ok(store) => store,
         Err(e) => {
             metrics.checkpoint_failures.fetch_add(1, Relaxed);
@@ -184,6 +188,8 @@ pub(crate) mod tests {
             publisher_id: 3,
             sequence: 9,
             stamp_ns: 1,
+            insert: 0,
+            reach_m: 10.0,
         }];
         Checkpoint {
             created_unix_ns: 42,

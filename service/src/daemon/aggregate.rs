@@ -3,8 +3,10 @@
 //! insert (each tile refitted once), so it catches up instead of dropping scans.
 
 use super::AggregateFeed;
-use crate::map::aggregate::world::WorldAggregate;
+use crate::checkpoint::PageStore;
+use crate::map::aggregate::world::{TilePage, WorldAggregate};
 use crate::map::aggregate::Aggregate;
+use crate::metrics::Metrics;
 use crate::priority::{lower_current_thread, Background};
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
@@ -81,6 +83,7 @@ pub(super) fn aggregate_loop(
     mut world: Arc<WorldAggregate>,
     radius_m: f64,
     mut budget: FusionBudget,
+    mut pages: Option<PageStore>,
     shutdown: &Shutdown,
 ) {
     let m = &state.metrics;
@@ -117,6 +120,10 @@ pub(super) fn aggregate_loop(
         last_start = Some(started);
         let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
+        if let Some(store) = &pages {
+            let s = newest.pose.translation.vector;
+            page_in(store, &mut next, (s.x, s.y), radius_m, &pool, m);
+        }
         let scans: Vec<_> = batch.iter().map(|(scan, map)| (scan, map.as_ref())).collect();
         let n = batch.len() as u64;
         let inserted = pool.install(|| next.insert_all_and_evict(&scans, radius_m, reach_m));
@@ -125,6 +132,11 @@ pub(super) fn aggregate_loop(
             .store((reach_m * 1e3) as u64, Ordering::Relaxed);
         match inserted {
             Ok(evicted) => {
+                // Out of the published map only once its successor is ready: write them first.
+                if let Some(store) = &mut pages {
+                    page_out(store, &evicted, m);
+                }
+                let evicted = evicted.len();
                 world = Arc::new(next);
                 state
                     .snapshot
@@ -144,6 +156,71 @@ pub(super) fn aggregate_loop(
             Err(e) => {
                 m.aggregate_failed.fetch_add(n, Ordering::Relaxed);
                 warn!(error = %e, scans = n, "aggregate insert failed; the scans stay in the window only");
+            }
+        }
+    }
+}
+
+/// Brings back the tiles on disk within `radius_m` of `at` that `world` does not hold, before
+/// the scans near them are fused. A page that cannot be read is counted and logged and stays on
+/// disk; the tile starts anew from the scans.
+fn page_in(
+    store: &PageStore,
+    world: &mut WorldAggregate,
+    at: (f64, f64),
+    radius_m: f64,
+    pool: &rayon::ThreadPool,
+    m: &Metrics,
+) {
+    let wanted: Vec<(i32, i32)> = store
+        .keys()
+        .iter()
+        .copied()
+        .filter(|&k| !world.has_tile(k) && world.tile_distance(k, at.0, at.1) <= radius_m)
+        .collect();
+    if wanted.is_empty() {
+        return;
+    }
+    let loaded: Vec<_> = wanted
+        .into_iter()
+        .filter_map(|k| {
+            store
+                .read(k)
+                .inspect_err(|e| {
+                    m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
+                    let e: &dyn std::error::Error = e;
+                    warn!(error = e, "a paged tile cannot be read; it starts anew");
+                })
+                .ok()
+        })
+        .collect();
+    match pool.install(|| world.restore_pages(loaded)) {
+        Ok(restored) => {
+            m.aggregate_paged_in.fetch_add(restored as u64, Ordering::Relaxed);
+            debug!(restored, "tiles paged in");
+        }
+        Err(e) => {
+            m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
+            warn!(error = %e, "paged tiles cannot be refitted; they start anew");
+        }
+    }
+}
+
+/// Writes the tiles that left the radius to disk; a failure is counted and logged (that tile
+/// is then forgotten, as without a site map).
+fn page_out(store: &mut PageStore, evicted: &[TilePage], m: &Metrics) {
+    for page in evicted {
+        match store.write(page) {
+            Ok(()) => {
+                m.aggregate_paged_out.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(e) => {
+                m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
+                let e: &dyn std::error::Error = &e;
+                warn!(
+                    error = e,
+                    "a tile leaving the radius cannot be written; it is forgotten"
+                );
             }
         }
     }

@@ -9,6 +9,7 @@ mod fit;
 mod learn;
 
 use crate::checkpoint::writer::Writer;
+use crate::checkpoint::PageStore;
 use crate::config::{Config, ConfigError};
 use crate::exporter::Exporter;
 use crate::ingest::subscriber::IngestSettings;
@@ -25,6 +26,7 @@ use arc_swap::ArcSwap;
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
 use rangegp_transport::{zenoh_config, TransportConfigError};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -104,7 +106,13 @@ impl DaemonBuilder {
         let mut params = config.map_params();
         let world_params = WorldParams::default();
         let (store, restored) = if config.aggregate.enabled {
-            crate::checkpoint::resume(&config.checkpoint, &config.map_id, &world_params, &metrics)
+            crate::checkpoint::resume(
+                config.checkpoint_dir().as_deref(),
+                config.checkpoint.keep,
+                &config.map_id,
+                &world_params,
+                &metrics,
+            )
         } else {
             (None, None)
         };
@@ -167,11 +175,26 @@ impl DaemonBuilder {
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
             let radius_m = config.aggregate.radius_m;
             let budget = FusionBudget::new(config.aggregate.cpu_share, world_params.max_reach_m);
+            // The site map on disk beside the checkpoints (none without them: far tiles are
+            // then forgotten).
+            let pages = store.as_ref().and_then(|s| {
+                let identity = crate::checkpoint::identity(&config.map_id, &world_params);
+                PageStore::open(s.dir(), identity)
+                    .inspect_err(|e| {
+                        metrics.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
+                        let e: &dyn std::error::Error = e;
+                        warn!(
+                            error = e,
+                            "no site map: tiles beyond the radius will be forgotten"
+                        );
+                    })
+                    .ok()
+            });
             let start = world
                 .clone()
                 .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
-                aggregate_loop(&rx, &state, start, radius_m, budget, &shutdown);
+                aggregate_loop(&rx, &state, start, radius_m, budget, pages, &shutdown);
             })?);
             Some(feed)
         } else {

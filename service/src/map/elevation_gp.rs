@@ -9,6 +9,10 @@ use crate::gp::{CholeskyError, ExactGp, JitterPolicy, Kernel};
 pub struct ElevationGp {
     gp: ExactGp,
     mean_z: f64,
+    /// The points and noise variances it was fitted to (what a paged-out tile keeps, so that it
+    /// comes back fitted exactly as it left).
+    points: Vec<[f64; 3]>,
+    noise_var: Vec<f64>,
 }
 
 impl ElevationGp {
@@ -27,6 +31,8 @@ impl ElevationGp {
         Ok(Self {
             gp: ExactGp::fit(kernel, inputs, &targets, noise_var, jitter)?,
             mean_z,
+            points: points.to_vec(),
+            noise_var: noise_var.to_vec(),
         })
     }
 
@@ -47,6 +53,11 @@ impl ElevationGp {
         let (mut means, vars) = self.gp.predict_batch(&xs);
         means.iter_mut().for_each(|m| *m += self.mean_z);
         (means, vars)
+    }
+
+    /// The points and noise variances it was fitted to.
+    pub fn training(&self) -> (&[[f64; 3]], &[f64]) {
+        (&self.points, &self.noise_var)
     }
 
     /// The underlying GP (for likelihood-based hyperparameter fits).

@@ -57,6 +57,12 @@ pub struct Metrics {
     pub aggregate_evicted_tiles: AtomicU64,
     /// Reach each scan is fused out to now, millimetres (the fusion budget's choice).
     pub aggregate_reach_mm: AtomicU64,
+    /// Tiles written to the site map on disk when they left the radius.
+    pub aggregate_paged_out: AtomicU64,
+    /// Tiles read back from the site map when the robot returned.
+    pub aggregate_paged_in: AtomicU64,
+    /// Tile pages that could not be written or read back.
+    pub aggregate_page_failures: AtomicU64,
     /// Checkpoints written.
     pub checkpoints_written: AtomicU64,
     /// Checkpoint writes that failed (disk full, I/O error); the daemon keeps running.
@@ -106,6 +112,9 @@ impl Default for Metrics {
             aggregate_failed: AtomicU64::new(0),
             aggregate_evicted_tiles: AtomicU64::new(0),
             aggregate_reach_mm: AtomicU64::new(0),
+            aggregate_paged_out: AtomicU64::new(0),
+            aggregate_paged_in: AtomicU64::new(0),
+            aggregate_page_failures: AtomicU64::new(0),
             checkpoints_written: AtomicU64::new(0),
             checkpoint_failures: AtomicU64::new(0),
             checkpoints_rejected: AtomicU64::new(0),

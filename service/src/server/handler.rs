@@ -261,6 +261,9 @@ fn status(state: &DaemonState) -> StatusReply {
             failed: m.aggregate_failed.load(Relaxed),
             evicted_tiles: m.aggregate_evicted_tiles.load(Relaxed),
             reach_m: m.aggregate_reach_mm.load(Relaxed) as f64 * 1e-3,
+            paged_out: m.aggregate_paged_out.load(Relaxed),
+            paged_in: m.aggregate_paged_in.load(Relaxed),
+            page_failures: m.aggregate_page_failures.load(Relaxed),
         },
         hyperparameters: {
             let k = state.kernel.load();

@@ -74,7 +74,7 @@ pub struct Cell {
 }
 
 /// One scan folded into the aggregate: who sent it and when it was taken.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ScanRef {
     /// Publisher id.
     pub publisher_id: u64,
@@ -82,6 +82,24 @@ pub struct ScanRef {
     pub sequence: u64,
     /// Acquisition time, nanoseconds since the Unix epoch.
     pub stamp_ns: u64,
+    /// The insert it was fused in (scans of one insert share it; counted from the first).
+    pub insert: u64,
+    /// How far from its sensor it was fused, metres.
+    pub reach_m: f64,
+}
+
+/// A tile that left the area around the robot: its own cells and the points its expert was
+/// fitted to, so that it comes back exactly as it left (the site map's unit on disk).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TilePage {
+    /// Tile index (column, row).
+    pub key: (i32, i32),
+    /// The cells the tile owns.
+    pub cells: Vec<((i32, i32), Cell)>,
+    /// The (x, y, z) points its expert was fitted to (its cells and its margin's).
+    pub points: Vec<[f64; 3]>,
+    /// Their noise variances, m².
+    pub noise_var: Vec<f64>,
 }
 
 /// Scans the aggregate remembers having folded in, newest last (provenance for operators and for
@@ -182,6 +200,7 @@ impl WorldAggregate {
         radius_m: f64,
     ) -> Result<usize, AggregateError> {
         self.insert_all_and_evict(&[(scan, local)], radius_m, self.params.max_reach_m)
+            .map(|pages| pages.len())
     }
 
     /// Folds every scan of `batch` in, each out to `reach_m` of its sensor (at most
@@ -189,16 +208,15 @@ impl WorldAggregate {
     /// evicts the tiles beyond `radius_m` of the last scan's sensor, but only when the map held
     /// a tile within that radius before the insert. A scan far from everything mapped (a pose
     /// glitch, or the first scan of a relocalised robot) adds its tiles and evicts nothing, so no
-    /// single scan can empty the map. Returns how many tiles were evicted; an empty batch does
-    /// nothing.
+    /// single scan can empty the map. Returns the evicted tiles; an empty batch does nothing.
     pub fn insert_all_and_evict(
         &mut self,
         batch: &[(&ScanInput, &LocalRangeMap)],
         radius_m: f64,
         reach_m: f64,
-    ) -> Result<usize, AggregateError> {
+    ) -> Result<Vec<TilePage>, AggregateError> {
         let Some((_, newest)) = batch.last() else {
-            return Ok(0);
+            return Ok(Vec::new());
         };
         let s = newest.sensor_position();
         let connected = self.tiles.is_empty()
@@ -210,7 +228,7 @@ impl WorldAggregate {
         Ok(if connected {
             self.evict_beyond(s.x, s.y, radius_m)
         } else {
-            0
+            Vec::new()
         })
     }
 
@@ -230,6 +248,8 @@ impl WorldAggregate {
         reach_m: f64,
     ) -> Result<(), AggregateError> {
         let mut dirty = BTreeSet::new();
+        let insert = self.history.back().map_or(0, |r| r.insert + 1);
+        let reach_m = reach_m.min(self.params.max_reach_m);
         for (scan, local) in batch {
             for (c, e) in self.predicted_cells(local, reach_m) {
                 let cell = self.cells.entry(c).or_insert(Cell {
@@ -253,6 +273,8 @@ impl WorldAggregate {
                 publisher_id: scan.publisher_id,
                 sequence: scan.sequence,
                 stamp_ns: scan.stamp_ns,
+                insert,
+                reach_m,
             });
         }
         self.refit(dirty)
@@ -288,15 +310,15 @@ impl WorldAggregate {
     }
 
     /// Distance from tile `t`'s centre to map (x, y), metres.
-    fn tile_distance(&self, (ti, tj): (i32, i32), x: f64, y: f64) -> f64 {
+    pub fn tile_distance(&self, (ti, tj): (i32, i32), x: f64, y: f64) -> f64 {
         let side = self.params.tile_cells as f64 * self.params.cell_m;
         ((ti as f64 + 0.5) * side - x).hypot((tj as f64 + 0.5) * side - y)
     }
 
     /// Drops the tiles whose centre lies farther than `radius_m` from map (x, y), with the
-    /// cells they own, and returns how many tiles went. Neighbours keep their fits (their
-    /// margins may have trained on dropped cells) until a scan touches them again.
-    pub fn evict_beyond(&mut self, x: f64, y: f64, radius_m: f64) -> usize {
+    /// cells they own, and returns them as pages (for the site map on disk). Neighbours keep
+    /// their fits (their margins may have trained on dropped cells) until a scan touches them.
+    pub fn evict_beyond(&mut self, x: f64, y: f64, radius_m: f64) -> Vec<TilePage> {
         // Every cell's own tile is fitted (its grown box holds the cell), so the far tiles name
         // every cell to drop.
         let gone: BTreeSet<(i32, i32)> = self
@@ -306,12 +328,81 @@ impl WorldAggregate {
             .filter(|&t| self.tile_distance(t, x, y) > radius_m)
             .collect();
         if gone.is_empty() {
-            return 0;
+            return Vec::new();
         }
+        let n = self.params.tile_cells;
+        let mut pages: HashMap<(i32, i32), TilePage> = gone
+            .iter()
+            .map(|&key| {
+                let (points, noise_var) = self
+                    .tiles
+                    .get(&key)
+                    .map(|gp| {
+                        let (p, v) = gp.training();
+                        (p.to_vec(), v.to_vec())
+                    })
+                    .unwrap_or_default();
+                let page = TilePage {
+                    key,
+                    cells: Vec::new(),
+                    points,
+                    noise_var,
+                };
+                (key, page)
+            })
+            .collect();
         self.tiles.retain(|t, _| !gone.contains(t));
-        let (n, cells) = (self.params.tile_cells, &mut self.cells);
-        cells.retain(|&(i, j), _| !gone.contains(&(i.div_euclid(n), j.div_euclid(n))));
-        gone.len()
+        self.cells.retain(|&(i, j), cell| {
+            let tile = (i.div_euclid(n), j.div_euclid(n));
+            match pages.get_mut(&tile) {
+                Some(page) => {
+                    page.cells.push(((i, j), *cell));
+                    false
+                }
+                None => true,
+            }
+        });
+        let mut pages: Vec<TilePage> = pages.into_values().collect();
+        for page in &mut pages {
+            page.cells.sort_by_key(|&(k, _)| k);
+        }
+        pages.sort_by_key(|p| p.key);
+        pages
+    }
+
+    /// Whether tile `key` is held in memory.
+    pub fn has_tile(&self, key: (i32, i32)) -> bool {
+        self.tiles.contains_key(&key)
+    }
+
+    /// Brings paged-out tiles back: each page's cells (where no cell is held now) and its
+    /// expert, refitted from the page's own points, so a tile that left and came back with no
+    /// new scan in between answers exactly as before. A page whose tile is held is skipped.
+    pub fn restore_pages(&mut self, pages: Vec<TilePage>) -> Result<usize, AggregateError> {
+        let kernel = Kernel::matern32(self.params.kernel_variance, self.params.length_scale);
+        let fresh: Vec<TilePage> = pages.into_iter().filter(|p| !self.has_tile(p.key)).collect();
+        let fitted: Vec<((i32, i32), Option<ElevationGp>)> = fresh
+            .par_iter()
+            .map(|p| {
+                if p.points.is_empty() || p.points.len() != p.noise_var.len() {
+                    return Ok((p.key, None));
+                }
+                let gp = ElevationGp::fit(&p.points, &p.noise_var, kernel, JitterPolicy::default())?;
+                Ok((p.key, Some(gp)))
+            })
+            .collect::<Result<_, AggregateError>>()?;
+        for page in &fresh {
+            for &(c, cell) in &page.cells {
+                self.cells.entry(c).or_insert(cell);
+            }
+        }
+        let restored = fitted.len();
+        for (key, gp) in fitted {
+            if let Some(gp) = gp {
+                self.tiles.insert(key, Arc::new(gp));
+            }
+        }
+        Ok(restored)
     }
 
     /// The fused cells, by index.
@@ -630,21 +721,40 @@ mod tests {
     }
 
     #[test]
-    fn eviction_drops_far_tiles_and_their_cells_only() {
+    fn eviction_pages_far_tiles_out_and_they_come_back_exactly() {
         let terrain = Heightmap::flat(80.0, 0.05, 0.0);
         let mut agg = WorldAggregate::new(WorldParams::default());
         fold(&mut agg, &terrain, -25.0, 0.0, 0.0);
         fold(&mut agg, &terrain, 20.0, 0.0, 0.0);
-        let (tiles, near) = (agg.tiles(), agg.elevation(22.0, 1.0).expect("observed"));
-        let evicted = agg.evict_beyond(20.0, 0.0, 20.0);
+        let (tiles, cells) = (agg.tiles(), agg.len());
+        let near = agg.elevation(22.0, 1.0).expect("observed");
+        let far_probes: Vec<(f64, f64)> = (0..40)
+            .map(|k| (-24.0 + 0.17 * k as f64, 0.9 - 0.05 * k as f64))
+            .collect();
+        let far_before: Vec<_> = far_probes.iter().map(|&(x, y)| agg.elevation(x, y)).collect();
+        assert!(far_before.iter().filter(|e| e.is_some()).count() > 20);
+        let pages = agg.evict_beyond(20.0, 0.0, 20.0);
+        let evicted = pages.len();
         assert!(
             evicted > 0 && agg.tiles() == tiles - evicted,
             "{evicted} of {tiles}"
         );
-        assert!(agg.elevation(-25.0, 1.0).is_none(), "far scan forgotten");
+        assert!(agg.elevation(-25.0, 1.0).is_none(), "far scan paged out");
         assert!(agg.cells().keys().all(|&(i, _)| (i as f64 + 0.5) * 0.25 > -5.0));
         assert_eq!(agg.elevation(22.0, 1.0), Some(near), "near tiles untouched");
-        assert_eq!(agg.evict_beyond(20.0, 0.0, 20.0), 0, "idempotent");
+        assert!(agg.evict_beyond(20.0, 0.0, 20.0).is_empty(), "idempotent");
+        let paged_cells: usize = pages.iter().map(|p| p.cells.len()).sum();
+        assert_eq!(agg.len() + paged_cells, cells, "every cell either held or paged");
+        // Back with no scan in between: the same answers, bit for bit.
+        assert_eq!(agg.restore_pages(pages.clone()).expect("refit"), evicted);
+        assert_eq!((agg.tiles(), agg.len()), (tiles, cells));
+        let far_after: Vec<_> = far_probes.iter().map(|&(x, y)| agg.elevation(x, y)).collect();
+        assert_eq!(far_after, far_before);
+        assert_eq!(
+            agg.restore_pages(pages).expect("no-op"),
+            0,
+            "held tiles are not replaced"
+        );
     }
 
     #[test]
