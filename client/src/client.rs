@@ -200,6 +200,20 @@ impl Client {
         check_len(rays.len(), rep.items)
     }
 
+    /// A range image (σ, hit probability, source and provenance per pixel) of the map as the
+    /// sensor `req` describes would see it from its pose (`query/view`).
+    pub fn view(&self, req: &ViewRequest) -> Result<ViewReply, ClientError> {
+        let rep: ViewReply = self.call(&self.keys.query(QueryKind::View), req)?;
+        let pixels = rep.rows as usize * rep.cols as usize;
+        if rep.range_m.len() != pixels {
+            return Err(ClientError::BatchMismatch {
+                sent: pixels,
+                got: rep.range_m.len(),
+            });
+        }
+        Ok(rep)
+    }
+
     /// Elevation and variance layers over the box `min_m`..`max_m` at `resolution_m`.
     pub fn grid(
         &self,

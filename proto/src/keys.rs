@@ -18,15 +18,18 @@ pub enum QueryKind {
     Ray,
     /// Elevation and variance layers over a box.
     Grid,
+    /// A range image as a sensor would see the map from a pose.
+    View,
 }
 
 impl QueryKind {
     /// Every kind, for declaring queryables.
-    pub const ALL: [QueryKind; 4] = [
+    pub const ALL: [QueryKind; 5] = [
         QueryKind::Elevation,
         QueryKind::Variance,
         QueryKind::Ray,
         QueryKind::Grid,
+        QueryKind::View,
     ];
 
     /// The last key chunk of this kind.
@@ -36,6 +39,7 @@ impl QueryKind {
             QueryKind::Variance => "variance",
             QueryKind::Ray => "ray",
             QueryKind::Grid => "grid",
+            QueryKind::View => "view",
         }
     }
 }

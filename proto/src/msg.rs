@@ -218,6 +218,69 @@ impl GridReply {
     }
 }
 
+/// How a view's pixels look out of the sensor (the sensor frame: x forward, y left, z up).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Camera {
+    /// A spinning LiDAR: one row per ring (its elevation above the sensor's xy plane, radians,
+    /// top ring first), `columns` azimuths evenly over a full turn starting straight ahead and
+    /// turning left.
+    Lidar {
+        /// Ring elevations, radians.
+        ring_elevations_rad: Vec<f64>,
+        /// Azimuths per ring.
+        columns: u32,
+        /// Longest range, metres.
+        max_range_m: f64,
+    },
+    /// A pinhole camera looking along the sensor's x axis, square pixels.
+    Pinhole {
+        /// Pixels across.
+        width: u32,
+        /// Pixels down.
+        height: u32,
+        /// Horizontal field of view, radians (in (0, π)).
+        hfov_rad: f64,
+        /// Longest range, metres.
+        max_range_m: f64,
+    },
+}
+
+/// A range image of the map as a sensor at a pose would see it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewRequest {
+    /// Must equal [`crate::PROTOCOL_VERSION`].
+    pub version: u32,
+    /// Sensor position in the map frame, metres.
+    pub position_m: [f64; 3],
+    /// Sensor orientation in the map frame, unit quaternion (x, y, z, w).
+    pub orientation_xyzw: [f64; 4],
+    /// The sensor's pixels.
+    pub camera: Camera,
+}
+
+/// The answer to a [`ViewRequest`]: `rows × cols` pixels, row-major from the top row (the top
+/// ring, or the image's top), each the ray answer along that pixel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ViewReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// Pixel rows.
+    pub rows: u32,
+    /// Pixel columns.
+    pub cols: u32,
+    /// Expected range per pixel, metres (`None`: no hit predicted, or nothing known).
+    pub range_m: Vec<Option<f32>>,
+    /// σ of the range per pixel, metres.
+    pub sigma_m: Vec<Option<f32>>,
+    /// Probability of a hit before the max range per pixel (`None`: nothing known).
+    pub hit_probability: Vec<Option<f32>>,
+    /// Which map answered each pixel.
+    pub source: Vec<Source>,
+    /// How much data stands behind each pixel's hit.
+    pub provenance: Vec<Provenance>,
+}
+
 /// Ask for the daemon's counters.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StatusRequest {
@@ -273,6 +336,8 @@ pub struct QueryLatencies {
     pub ray: LatencySummary,
     /// `query/grid`.
     pub grid: LatencySummary,
+    /// `query/view`.
+    pub view: LatencySummary,
     /// `status`.
     pub status: LatencySummary,
 }

@@ -8,7 +8,8 @@ use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::plot::{Heatmap, Raster};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
-use rangegp_proto::msg::{GridReply, Ray};
+use rangegp_proto::msg::{Camera, GridReply, Ray, Source, ViewReply, ViewRequest};
+use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
 
@@ -89,6 +90,29 @@ enum Command {
         #[arg(long)]
         png: Option<std::path::PathBuf>,
         /// Print every cell.
+        #[arg(long)]
+        json: bool,
+    },
+    /// A range image of the map as a LiDAR preset would see it from a pose (any pose: never
+    /// visited is fine): prints a summary as JSON, or the whole reply with `--json`; `--png FILE`
+    /// draws the range to FILE and its σ beside it (`_sigma` before `.png`).
+    View {
+        #[command(flatten)]
+        connection: Connection,
+        /// Sensor position X Y Z (map frame, metres) and heading (degrees, counter-clockwise
+        /// from +x).
+        #[arg(long, num_args = 4, allow_negative_numbers = true, required = true)]
+        pose: Vec<f64>,
+        /// Sensor preset whose rings to use: seed000, vlp16 or os1-64.
+        #[arg(long, default_value = "vlp16")]
+        preset: String,
+        /// Azimuths over a full turn.
+        #[arg(long, default_value_t = 360)]
+        columns: u32,
+        /// Write the range image as PNG here.
+        #[arg(long)]
+        png: Option<std::path::PathBuf>,
+        /// Print every pixel.
         #[arg(long)]
         json: bool,
     },
@@ -199,6 +223,48 @@ fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
+/// The range image of a lidar view to `file` and its σ beside it, over azimuth and elevation
+/// in degrees (each 0.5° cell takes the nearest pixel).
+fn draw_view(rep: &ViewReply, req: &ViewRequest, file: &std::path::Path) -> Result<()> {
+    let Camera::Lidar {
+        ring_elevations_rad, ..
+    } = &req.camera
+    else {
+        anyhow::bail!("only lidar views are drawn");
+    };
+    let elevations: Vec<f64> = ring_elevations_rad.iter().map(|e| e.to_degrees()).collect();
+    let (lo, hi) = elevations
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &e| {
+            (a.min(e), b.max(e))
+        });
+    let pixel = |az: f64, el: f64, layer: &[Option<f32>]| {
+        let row = elevations
+            .iter()
+            .enumerate()
+            .min_by(|a, b| (a.1 - el).abs().total_cmp(&(b.1 - el).abs()))?
+            .0;
+        let col = ((az / 360.0 * f64::from(rep.cols)).round() as usize) % rep.cols.max(1) as usize;
+        layer[row * rep.cols as usize + col].map(f64::from)
+    };
+    let res = 0.5;
+    let range = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
+        pixel(az, el, &rep.range_m)
+    });
+    Heatmap::new("Range as the sensor would see the map", "range (m)")
+        .axes("azimuth (°, left of ahead)", "elevation (°)")
+        .save(file, &range)?;
+    let sigma = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
+        pixel(az, el, &rep.sigma_m)
+    });
+    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("view");
+    Heatmap::new("σ of the range", "σ (m)")
+        .axes("azimuth (°, left of ahead)", "elevation (°)")
+        .gradient(colorous::MAGMA)
+        .save(&file.with_file_name(format!("{stem}_sigma.png")), &sigma)?;
+    Ok(())
+}
+
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -263,6 +329,50 @@ fn main() -> Result<()> {
                     "origin_m": rep.origin_m,
                     "resolution_m": rep.resolution_m,
                     "observed_cells": observed,
+                    "png": png,
+                });
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            }
+        }
+        Command::View {
+            connection,
+            pose,
+            preset,
+            columns,
+            png,
+            json,
+        } => {
+            let preset = preset_named(&preset)?;
+            let yaw = pose[3].to_radians();
+            let req = ViewRequest {
+                version: PROTOCOL_VERSION,
+                position_m: [pose[0], pose[1], pose[2]],
+                orientation_xyzw: [0.0, 0.0, (yaw / 2.0).sin(), (yaw / 2.0).cos()],
+                camera: Camera::Lidar {
+                    ring_elevations_rad: preset
+                        .inclinations_rad
+                        .iter()
+                        .map(|i| std::f64::consts::FRAC_PI_2 - i)
+                        .collect(),
+                    columns,
+                    max_range_m: preset.max_range_m,
+                },
+            };
+            let rep = connection.open()?.view(&req)?;
+            if let Some(file) = &png {
+                draw_view(&rep, &req, file)?;
+            }
+            if json {
+                println!("{}", serde_json::to_string(&rep)?);
+            } else {
+                let count = |s: Source| rep.source.iter().filter(|&&v| v == s).count();
+                let summary = serde_json::json!({
+                    "rows": rep.rows,
+                    "cols": rep.cols,
+                    "hits": rep.range_m.iter().flatten().count(),
+                    "from_window": count(Source::Window),
+                    "from_aggregate": count(Source::Aggregate),
+                    "unknown": count(Source::None),
                     "png": png,
                 });
                 println!("{}", serde_json::to_string_pretty(&summary)?);

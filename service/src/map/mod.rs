@@ -13,6 +13,7 @@ pub mod scales;
 #[cfg(test)]
 mod test_support;
 pub mod tiles;
+pub mod view;
 pub mod window;
 
 pub use local::{FitError, LocalRangeMap};

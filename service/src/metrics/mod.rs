@@ -219,6 +219,7 @@ impl Metrics {
             variance: self.query(Some(QueryKind::Variance)).summary(),
             ray: self.query(Some(QueryKind::Ray)).summary(),
             grid: self.query(Some(QueryKind::Grid)).summary(),
+            view: self.query(Some(QueryKind::View)).summary(),
             status: self.query(None).summary(),
         }
     }

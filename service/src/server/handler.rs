@@ -103,7 +103,41 @@ pub fn answer(
             let req: GridRequest = decode(encoding, payload)?;
             encode(encoding, &grid(&req, state)?)
         }
+        Endpoint::Query(QueryKind::View) => {
+            let req: ViewRequest = decode(encoding, payload)?;
+            encode(encoding, &view(&req, state)?)
+        }
     }
+}
+
+/// The pixels of a validated view request: one ray each, cast like a ray query.
+fn view(req: &ViewRequest, state: &DaemonState) -> Result<ViewReply, Failure> {
+    let (rows, cols, rays) = crate::map::view::view_rays(req).map_err(|reason| Failure {
+        code: ErrorCode::InvalidArgument,
+        message: format!("view: {reason}"),
+    })?;
+    check_batch(rays.len(), state)?;
+    for (i, r) in rays.iter().enumerate() {
+        check_ray(i, r, state)?;
+    }
+    let snap = snapshot(state)?;
+    let items = query::par_map(&rays, state.batch_threads, |r| query::ray(&snap, r));
+    Ok(ViewReply {
+        version: PROTOCOL_VERSION,
+        rows,
+        cols,
+        range_m: items.iter().map(|i| i.range_m.map(|r| r as f32)).collect(),
+        sigma_m: items
+            .iter()
+            .map(|i| i.range_var_m2.map(|v| v.max(0.0).sqrt() as f32))
+            .collect(),
+        hit_probability: items
+            .iter()
+            .map(|i| i.hit_probability.map(|p| p as f32))
+            .collect(),
+        source: items.iter().map(|i| i.source).collect(),
+        provenance: items.iter().map(|i| i.provenance).collect(),
+    })
 }
 
 /// The layers of a validated grid request: cell centres evaluated like elevation queries.
