@@ -402,7 +402,7 @@ fn run_one(
 }
 
 /// The angles a scanner covers in its own frame, for the visibility test.
-struct Coverage {
+pub(super) struct Coverage {
     inclination: (f64, f64),
     /// Azimuth span widened by one column step on each side.
     azimuth: (f64, f64),
@@ -410,7 +410,8 @@ struct Coverage {
 }
 
 impl Coverage {
-    fn of(preset: &ScannerPreset) -> Self {
+    /// The coverage of `preset`.
+    pub(super) fn of(preset: &ScannerPreset) -> Self {
         let span = |v: &[f64]| {
             v.iter()
                 .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)))
@@ -426,7 +427,7 @@ impl Coverage {
 
     /// Whether the ground point `p` is seen from `pose`: inside the scanner's rings and columns,
     /// in range, and the first surface along the ray from the sensor is the point itself.
-    fn sees(&self, terrain: &Heightmap, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
+    pub(super) fn sees(&self, terrain: &Heightmap, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
         let origin = pose.translation.vector;
         let to = Vector3::new(p[0], p[1], p[2]) - origin;
         let dist = to.norm();

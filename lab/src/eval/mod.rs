@@ -9,6 +9,7 @@ pub mod overhang;
 pub mod progress;
 pub mod scores;
 pub mod split;
+pub mod view;
 
 use aggregate::{print_aggregate, run_aggregate, AggregateOptions, AggregateReport};
 use anyhow::Result;
@@ -32,6 +33,9 @@ pub enum Experiment {
     /// σ calibration over the sim family of terrains × sensors × range bands (not in `all`):
     /// writes calibration.json.
     Calibration,
+    /// Rays from poses never visited over ground only evicted scans saw (not in `all`): writes
+    /// view.json.
+    View,
 }
 
 /// Command line of `rangegp-eval`.
@@ -126,6 +130,9 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
     if opts.experiment == Experiment::Calibration {
         return run_calibration_experiment(opts);
     }
+    if opts.experiment == Experiment::View {
+        return run_view_experiment(opts);
+    }
     let want = |e: Experiment| opts.experiment == e || opts.experiment == Experiment::All;
     eprintln!("terrain: 100 m × 100 m at 5 cm, seed {} …", opts.seed);
     let terrain = Heightmap::cratered(opts.seed, &CraterParams::default());
@@ -212,12 +219,42 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
     Ok(summary)
 }
 
-/// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
-fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
-    let config = match &opts.config {
+/// The daemon configuration an experiment maps with (`--config`, else the embedded defaults).
+fn daemon_config(opts: &EvalOptions) -> Result<rangegp_service::config::Config> {
+    Ok(match &opts.config {
         Some(path) => rangegp_service::config::Config::load(path)?,
         None => rangegp_service::config::Config::default(),
-    };
+    })
+}
+
+/// `rangegp-eval view`: rays over evicted ground, printed and written to view.json.
+fn run_view_experiment(opts: &EvalOptions) -> Result<Summary> {
+    let report = view::run_view(&view::ViewOptions {
+        quick: opts.quick,
+        seed: opts.seed,
+        config: daemon_config(opts)?,
+    })?;
+    view::print_view(&report);
+    std::fs::create_dir_all(&opts.out)?;
+    let file = opts.out.join("view.json");
+    std::fs::write(&file, serde_json::to_string_pretty(&report)?)?;
+    for f in &report.failures {
+        println!("  bar missed: {f}");
+    }
+    println!("\n  written: {}", file.display());
+    Ok(Summary {
+        quick: opts.quick,
+        seed: opts.seed,
+        local: None,
+        aggregate: None,
+        overhang: None,
+        failures: report.failures,
+    })
+}
+
+/// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
+fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
+    let config = daemon_config(opts)?;
     let report = calibration::run_calibration(&calibration::CalibrationOptions {
         quick: opts.quick,
         seed: opts.seed,

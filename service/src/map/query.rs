@@ -1,7 +1,7 @@
 //! Query evaluation over a [`MapSnapshot`]: elevation, variance and rays, in batches.
 
 use super::aggregate::Aggregate;
-use super::local::HeightEstimate;
+use super::local::{HeightEstimate, RayEstimate};
 use super::tiles::smoothstep;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
@@ -197,10 +197,11 @@ pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
 }
 
 /// Casts one ray (already validated: finite, non-zero direction, positive range) over the
-/// whole map: the nearest window maps first; where none of them meets the surface, the
-/// aggregate. Preference: a window hit (the surest of them), an aggregate hit, a window's
-/// no-hit (its hit probability from the closest approach), the aggregate's no-hit; with no map
-/// knowing anything along the ray, no hit probability at all.
+/// whole map: the nearest window maps and the aggregate. Preference: the surer hit (smaller
+/// calibrated range variance) of the best window hit and the aggregate's (a window map far from
+/// the hit sees it at a grazing angle; the aggregate fused it from nearer scans), then a
+/// window's no-hit (its hit probability from the closest approach), the aggregate's no-hit;
+/// with no map knowing anything along the ray, no hit probability at all.
 pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     let origin = Vector3::from(ray.origin_m);
     let dir = Vector3::from(ray.direction).normalize();
@@ -221,33 +222,51 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
             .unwrap_or(f64::INFINITY)
             .total_cmp(&b.range_var.unwrap_or(f64::INFINITY))
     });
-    let answer = if let Some(hit) = window_hit {
-        Some((*hit, Source::Window))
-    } else {
-        let aggregate = snapshot
-            .aggregate
-            .as_ref()
-            .and_then(|a| a.cast(origin, dir, ray.max_range_m));
-        let window_miss = answers
-            .iter()
-            .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
-        match (aggregate, window_miss) {
-            (Some(a), _) if a.range.is_some() => Some((a, Source::Aggregate)),
-            (_, Some(w)) => Some((*w, Source::Window)),
-            (Some(a), None) => Some((a, Source::Aggregate)),
-            (None, None) => None,
+    let aggregate = snapshot
+        .aggregate
+        .as_ref()
+        .and_then(|a| a.cast(origin, dir, ray.max_range_m));
+    let calibrated = |a: &RayEstimate, source: Source| {
+        a.range
+            .zip(a.range_var)
+            .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var))
+    };
+    let window_miss = answers
+        .iter()
+        .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
+    let answer = match (window_hit, aggregate) {
+        (Some(w), Some(a)) if a.range.is_some() => {
+            let (vw, va) = (calibrated(w, Source::Window), calibrated(&a, Source::Aggregate));
+            if va.unwrap_or(f64::INFINITY) < vw.unwrap_or(f64::INFINITY) {
+                Some((a, Source::Aggregate))
+            } else {
+                Some((*w, Source::Window))
+            }
         }
+        (Some(w), _) => Some((*w, Source::Window)),
+        (None, Some(a)) if a.range.is_some() => Some((a, Source::Aggregate)),
+        (None, aggregate) => match (window_miss, aggregate) {
+            (Some(w), _) => Some((*w, Source::Window)),
+            (None, Some(a)) => Some((a, Source::Aggregate)),
+            (None, None) => None,
+        },
     };
     match answer {
-        Some((a, source)) => RayItem {
-            range_m: a.range,
-            range_var_m2: a.range_var,
-            hit_probability: Some(a.hit_probability),
-            hit_point_m: a.range.map(|t| (origin + dir * t).into()),
-            hit_sigma_m: a.range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
-            source,
-            provenance: a.provenance,
-        },
+        Some((a, source)) => {
+            let range_var = a
+                .range
+                .zip(a.range_var)
+                .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var));
+            RayItem {
+                range_m: a.range,
+                range_var_m2: range_var,
+                hit_probability: Some(a.hit_probability),
+                hit_point_m: a.range.map(|t| (origin + dir * t).into()),
+                hit_sigma_m: range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
+                source,
+                provenance: a.provenance,
+            }
+        }
         None => RayItem {
             range_m: None,
             range_var_m2: None,
@@ -257,6 +276,18 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
             source: Source::None,
             provenance: Provenance::None,
         },
+    }
+}
+
+/// A hit's range variance with the snapshot's σ calibration applied: the factor the height
+/// answer at the hit point gets (the range's uncertainty is the height's seen along the ray).
+fn calibrated_range_var(snapshot: &MapSnapshot, source: Source, hit: Vector3<f64>, var: f64) -> f64 {
+    match raw_elevation(snapshot, hit.x, hit.y) {
+        Some(a) => {
+            let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
+            var * s * s
+        }
+        None => var,
     }
 }
 
