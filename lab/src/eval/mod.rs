@@ -8,6 +8,7 @@ pub mod local;
 pub mod overhang;
 pub mod progress;
 pub mod scores;
+pub mod sitemap;
 pub mod split;
 pub mod view;
 
@@ -36,6 +37,9 @@ pub enum Experiment {
     /// Rays from poses never visited over ground only evicted scans saw (not in `all`): writes
     /// view.json.
     View,
+    /// A drive of over 1 km with the daemon in this process and its site map (not in `all`):
+    /// writes sitemap.json.
+    Sitemap,
 }
 
 /// Command line of `rangegp-eval`.
@@ -132,6 +136,28 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
     }
     if opts.experiment == Experiment::View {
         return run_view_experiment(opts);
+    }
+    if opts.experiment == Experiment::Sitemap {
+        let report = sitemap::run_sitemap(&sitemap::SitemapOptions {
+            quick: opts.quick,
+            seed: opts.seed,
+        })?;
+        sitemap::print_sitemap(&report);
+        std::fs::create_dir_all(&opts.out)?;
+        let file = opts.out.join("sitemap.json");
+        std::fs::write(&file, serde_json::to_string_pretty(&report)?)?;
+        for f in &report.failures {
+            println!("  bar missed: {f}");
+        }
+        println!("\n  written: {}", file.display());
+        return Ok(Summary {
+            quick: opts.quick,
+            seed: opts.seed,
+            local: None,
+            aggregate: None,
+            overhang: None,
+            failures: report.failures,
+        });
     }
     let want = |e: Experiment| opts.experiment == e || opts.experiment == Experiment::All;
     eprintln!("terrain: 100 m × 100 m at 5 cm, seed {} …", opts.seed);

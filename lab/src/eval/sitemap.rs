@@ -1,0 +1,239 @@
+//! `rangegp-eval sitemap`: a long drive with the real daemon in this process (iceoryx2 in,
+//! Zenoh out, checkpoints and the site map in a temporary directory): memory must follow the
+//! radius, not the distance, and the start area, paged out and back with no scan in between,
+//! must answer exactly as it did (issue 16).
+//!
+//! The route runs out and back twice along a straight line of cratered terrain; the start area
+//! is recorded on the third leg once no scan reaches it any more, and compared at the end, when
+//! the robot has come back to within the radius (its tiles paged in) but not within fusing reach.
+
+use super::progress;
+use crate::demo::TempDir;
+use crate::scangen::{now_ns, to_message};
+use anyhow::{bail, Context, Result};
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+use rangegp_client::{Client, ScanPublisher};
+use rangegp_proto::msg::StatusReply;
+use rangegp_service::config::Config;
+use rangegp_service::daemon::Daemon;
+use rangegp_service::map::aggregate::Aggregate;
+use rangegp_sim::{level_pose, simulate_scan, CraterParams, Heightmap, ScannerPreset};
+use rangegp_transport::free_loopback_endpoint;
+use serde::Serialize;
+use std::time::{Duration, Instant};
+
+/// Settings of the site-map evaluation.
+#[derive(Debug, Clone)]
+pub struct SitemapOptions {
+    /// Reduced sizes for CI.
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+}
+
+/// What `sitemap.json` holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct SitemapReport {
+    /// Quick (CI) or full sizes.
+    pub quick: bool,
+    /// Distance driven, metres.
+    pub distance_m: f64,
+    /// Scans published (all accepted and fused, or the run fails).
+    pub scans: u64,
+    /// Daemon process RSS mid-way along the second leg, MiB.
+    pub rss_warm_mb: f64,
+    /// Daemon process RSS at the end, MiB.
+    pub rss_end_mb: f64,
+    /// Largest |elevation at the end − elevation when fresh| over the start area, metres.
+    pub revisit_max_abs_diff_m: f64,
+    /// Start-area points compared.
+    pub revisit_points: usize,
+    /// Tiles written to and read back from disk.
+    pub paged_out: u64,
+    /// Tiles read back.
+    pub paged_in: u64,
+    /// Aggregate tiles held at the end (bounded by the radius).
+    pub tiles_end: u64,
+    /// Bars missed.
+    pub failures: Vec<String>,
+}
+
+/// Runs the drive.
+pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
+    let (half, step) = if opts.quick { (45.0, 2.5) } else { (128.0, 2.5) };
+    let terrain = Heightmap::cratered(
+        opts.seed,
+        &CraterParams {
+            resolution_m: 0.1,
+            ..CraterParams::sized(2.0 * half + 30.0)
+        },
+    );
+    let preset = ScannerPreset::os1_64(512);
+    let start = -half;
+    // Out, back, out, back to 18 m from the start (within the 30 m radius, beyond the 10 m reach).
+    let mut route: Vec<f64> = Vec::new();
+    let n = ((2.0 * half) / step).round() as usize;
+    let leg = |from: f64, dir: f64| (0..n).map(move |k| from + dir * step * k as f64);
+    route.extend(leg(start, 1.0));
+    route.extend(leg(half, -1.0));
+    route.extend(leg(start, 1.0));
+    let back_to = start + 18.0;
+    route.extend(leg(half, -1.0).take_while(|&x| x >= back_to));
+    let record_at = 2 * n + (20.0 / step).ceil() as usize;
+    // Warm: mid-way along the second leg, the radius's disc wholly on the map (as at the end).
+    let warm_at = n + n / 2;
+
+    let state = TempDir::new(&format!("sitemap-{}", std::process::id()))?;
+    let endpoint = free_loopback_endpoint()?;
+    let mut config = Config {
+        map_id: format!("sitemap-{}", std::process::id()),
+        ..Config::default()
+    };
+    config.zenoh.listen = vec![endpoint.clone()];
+    config.metrics.listen = String::new();
+    config.checkpoint.dir = Some(state.0.clone());
+    config.ingest.service_name = format!("rangegp/{}/scans", config.map_id);
+    let daemon = Daemon::builder(config.clone())
+        .start()
+        .context("starting the daemon")?;
+    let client = Client::builder(&config.map_id)
+        .connect([endpoint])
+        .timeout(Duration::from_secs(20))
+        .open()?;
+    client.wait_for_daemon(Duration::from_secs(20))?;
+    let mut publisher = ScanPublisher::new(&config.scan_service_name(), 77, preset.ray_count())?;
+
+    let probes: Vec<[f64; 2]> = (0..49)
+        .map(|k| [start + 1.0 + 0.5 * (k % 7) as f64, -1.5 + 0.5 * (k / 7) as f64])
+        .collect();
+    let (mut fresh, mut rss_warm) = (Vec::new(), 0.0);
+    let bar = progress::bar(route.len() as u64, "  sitemap scans");
+    let mut rng = Pcg64::seed_from_u64(opts.seed ^ 0x5173);
+    for (i, &x) in route.iter().enumerate() {
+        let heading = if i < n || (2 * n..3 * n).contains(&i) {
+            0.0
+        } else {
+            std::f64::consts::PI
+        };
+        let pose = level_pose(&terrain, x, 0.0, heading, preset.mount_height_m);
+        let rays = simulate_scan(&terrain, &pose, &preset, &mut rng);
+        let (header, points) = to_message(&preset, &pose, &rays, now_ns());
+        publisher.publish(header, &points)?;
+        let accepted = i as u64 + 1;
+        let s = wait(&client, "the scan fused", |s| {
+            s.scans_accepted == accepted && s.aggregate.inserts == accepted
+        })?;
+        if i + 1 == warm_at {
+            rss_warm = s.rss_mb.unwrap_or(0.0);
+        }
+        if i + 1 == record_at {
+            fresh = start_area(&daemon, &probes);
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let end = wait(&client, "the end", |_| true)?;
+    let last = start_area(&daemon, &probes);
+    let pairs: Vec<f64> = fresh
+        .iter()
+        .zip(&last)
+        .filter_map(|(a, b)| Some((a.as_ref()? - b.as_ref()?).abs()))
+        .collect();
+    let answered_fresh = fresh.iter().flatten().count();
+    let distance_m = step * (route.len() - 1) as f64;
+    let mut report = SitemapReport {
+        quick: opts.quick,
+        distance_m,
+        scans: end.scans_accepted,
+        rss_warm_mb: rss_warm,
+        rss_end_mb: end.rss_mb.unwrap_or(0.0),
+        revisit_max_abs_diff_m: pairs.iter().copied().fold(0.0, f64::max),
+        revisit_points: pairs.len(),
+        paged_out: end.aggregate.paged_out,
+        paged_in: end.aggregate.paged_in,
+        tiles_end: end.aggregate.tiles,
+        failures: Vec::new(),
+    };
+    daemon.shutdown();
+    let mut fail = |ok: bool, what: String| {
+        if !ok {
+            report.failures.push(what);
+        }
+    };
+    fail(
+        opts.quick || distance_m >= 1000.0,
+        format!("drove {distance_m} m, want ≥ 1000"),
+    );
+    fail(
+        report.rss_end_mb <= 1.1 * report.rss_warm_mb,
+        format!(
+            "RSS {:.1} MiB at the end, {:.1} when warm",
+            report.rss_end_mb, report.rss_warm_mb
+        ),
+    );
+    fail(
+        report.revisit_max_abs_diff_m <= 1e-6,
+        format!(
+            "start area moved by {:.3e} m after paging",
+            report.revisit_max_abs_diff_m
+        ),
+    );
+    fail(
+        report.revisit_points >= 20 && report.revisit_points == answered_fresh,
+        format!(
+            "{} of {answered_fresh} start-area points answered again",
+            report.revisit_points
+        ),
+    );
+    fail(report.paged_in > 0, "no tile came back from disk".into());
+    Ok(report)
+}
+
+/// The aggregate's elevation at `probes` (the start area), straight from the daemon's snapshot.
+fn start_area(daemon: &Daemon, probes: &[[f64; 2]]) -> Vec<Option<f64>> {
+    let snapshot = daemon.snapshot();
+    probes
+        .iter()
+        .map(|p| snapshot.aggregate.as_ref()?.elevation(p[0], p[1]).map(|e| e.z))
+        .collect()
+}
+
+/// Polls status until `done` (at most 60 s).
+fn wait(client: &Client, what: &str, done: impl Fn(&StatusReply) -> bool) -> Result<StatusReply> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let s = client.status()?;
+        if done(&s) {
+            return Ok(s);
+        }
+        if Instant::now() > deadline {
+            bail!("timed out waiting for {what}: {s:?}");
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// Prints the report.
+pub fn print_sitemap(r: &SitemapReport) {
+    println!(
+        "\nrangegp-eval sitemap ({} form)",
+        if r.quick { "quick" } else { "full" }
+    );
+    println!(
+        "  distance driven            {:.0} m ({} scans, OS1-64 512 columns)",
+        r.distance_m, r.scans
+    );
+    println!(
+        "  RSS warm / end             {:.1} / {:.1} MiB",
+        r.rss_warm_mb, r.rss_end_mb
+    );
+    println!(
+        "  tiles paged out / in       {} / {} (held at the end {})",
+        r.paged_out, r.paged_in, r.tiles_end
+    );
+    println!(
+        "  start area after paging    max |Δz| {:.3e} m over {} points",
+        r.revisit_max_abs_diff_m, r.revisit_points
+    );
+}
