@@ -2,7 +2,7 @@
 
 use nalgebra::Vector3;
 use rangegp_lab::scangen::now_ns;
-use rangegp_proto::msg::{Ray, Source};
+use rangegp_proto::msg::{Provenance, Ray, Source};
 use rangegp_tests::{rms, world, Harness};
 
 #[test]
@@ -31,7 +31,7 @@ fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
         }
     }
     let items = h.client.elevation(&points)?;
-    let mut errors = Vec::new();
+    let (mut errors, mut observed) = (Vec::new(), 0);
     for (p, item) in points.iter().zip(&items) {
         if item.z_m.is_none() {
             continue;
@@ -43,9 +43,24 @@ fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
         );
         let (z, var) = (item.z_m.expect("z"), item.z_var_m2.expect("variance"));
         assert!(var > 0.0, "σ must be positive");
+        // Per-axis σ of the surface point along the answering sensor's ray: finite, and for a
+        // window map not all vertical (the ray is slanted); graded provenance.
+        let sd = item.point_sigma_m.expect("per-axis σ with every value");
+        assert!(sd.iter().all(|v| v.is_finite() && *v >= 0.0), "{item:?}");
+        if item.source == Source::Window {
+            assert!(sd[0] + sd[1] > 0.0, "{item:?}");
+        }
+        assert_ne!(item.provenance, Provenance::None, "{item:?}");
+        observed += usize::from(item.provenance == Provenance::Observed);
         errors.push(z - w.terrain.height(p[0], p[1]).expect("on the map"));
     }
     assert!(errors.len() >= 80, "only {} of 100 points observed", errors.len());
+    // 3.5–7.5 m ahead of the sensors, among their returns: mostly observed.
+    assert!(
+        2 * observed >= errors.len(),
+        "{observed} of {} answers observed",
+        errors.len()
+    );
     let e = rms(&errors);
     assert!(e < 0.05, "elevation RMSE {e}");
     // Far from every scan: honestly unanswered, never a silent prior.
