@@ -437,7 +437,17 @@ impl LocalRangeMap {
         let gap = |t: f64| self.gap(&point(t));
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let t = root.t;
-            let var = self.root_variance(gap, &point(t), root)?;
+            let (inc, az, _) = self.look_at(&point(t))?;
+            let (_, var_r) = self.predict_range(inc, az);
+            let band = root::band_variance(
+                gap,
+                root,
+                var_r.sqrt(),
+                max_range / samples as f64 / 4.0,
+                0.0,
+                max_range,
+            );
+            let var = self.root_variance(gap, &point(t), root)?.max(band);
             let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
             let (inc, az, _) = self.look_at(&point(t))?;
             return Some(RayEstimate {

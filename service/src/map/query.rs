@@ -197,9 +197,10 @@ pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
 }
 
 /// Casts one ray (already validated: finite, non-zero direction, positive range) over the
-/// whole map: the nearest window maps and the aggregate. Preference: the surer hit (smaller
-/// calibrated range variance) of the best window hit and the aggregate's (a window map far from
-/// the hit sees it at a grazing angle; the aggregate fused it from nearer scans), then a
+/// whole map: the nearest window maps and the aggregate. Preference: a window hit on observed
+/// ground; else the surer hit (smaller calibrated range variance) of the best window hit and the
+/// aggregate's (a window map far from the hit sees it at a grazing angle; the aggregate fused it
+/// from nearer scans), then a
 /// window's no-hit (its hit probability from the closest approach), the aggregate's no-hit;
 /// with no map knowing anything along the ray, no hit probability at all.
 pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
@@ -222,9 +223,14 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
             .unwrap_or(f64::INFINITY)
             .total_cmp(&b.range_var.unwrap_or(f64::INFINITY))
     });
+    // A window hit on ground its scan measured (observed) stands; otherwise the aggregate, which
+    // may have fused that ground from nearer scans, is asked too (a cast over it costs a few
+    // hundred µs).
+    let settled = window_hit.is_some_and(|w| w.provenance == Provenance::Observed);
     let aggregate = snapshot
         .aggregate
         .as_ref()
+        .filter(|_| !settled)
         .and_then(|a| a.cast(origin, dir, ray.max_range_m));
     let calibrated = |a: &RayEstimate, source: Source| {
         a.range

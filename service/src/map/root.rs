@@ -89,6 +89,38 @@ pub fn root_variance(gap: impl Fn(f64) -> Option<f64>, root: Root, var_at_root: 
     (slope.abs() > 1e-6).then(|| var_at_root / (slope * slope))
 }
 
+/// The variance of a ray's crossing from the stretch of the ray that lies within ±2 σ of the
+/// surface around `root` (σ the gap's standard deviation there): a ray grazing the surface runs
+/// inside that band for long, and its hit could be anywhere along it, which the delta method's
+/// local slope does not see. Walks out from the root in `step`s within [t0, t1]; the band's
+/// length is read as a ±2 σ interval: ((t_hi − t_lo) / 4)².
+pub fn band_variance(
+    gap: impl Fn(f64) -> Option<f64>,
+    root: Root,
+    sd_gap: f64,
+    step: f64,
+    t0: f64,
+    t1: f64,
+) -> f64 {
+    let within = |t: f64| gap(t).is_some_and(|g| g.abs() <= 2.0 * sd_gap);
+    let walk = |dir: f64| {
+        let mut t = root.t;
+        for _ in 0..BAND_STEPS {
+            let next = (t + dir * step).clamp(t0, t1);
+            if next == t || !within(next) {
+                break;
+            }
+            t = next;
+        }
+        t
+    };
+    let (lo, hi) = (walk(-1.0), walk(1.0));
+    ((hi - lo) / 4.0).powi(2)
+}
+
+/// Most steps [`band_variance`] walks each way.
+const BAND_STEPS: usize = 400;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -108,6 +140,30 @@ mod tests {
         let v = root_variance(gap, unmeasured, 0.01).expect("slope");
         assert!((v - expected).abs() < 1e-7, "{v} vs {expected}");
         assert!(first_crossing(|t: f64| Some(t - 10.0), 0.0, 5.0, 10).is_none());
+        // A steep crossing's band is short; a grazing one's long.
+        let steep = band_variance(
+            |t: f64| Some(t - 1.0),
+            Root {
+                t: 1.0,
+                slope: Some(1.0),
+            },
+            0.01,
+            0.005,
+            0.0,
+            5.0,
+        );
+        let grazing = band_variance(
+            |t: f64| Some(0.01 * (t - 1.0)),
+            Root {
+                t: 1.0,
+                slope: Some(0.01),
+            },
+            0.01,
+            0.005,
+            0.0,
+            5.0,
+        );
+        assert!(steep.sqrt() < 0.02 && grazing.sqrt() > 0.5, "{steep} {grazing}");
         assert!(first_crossing(|t: f64| (t < 1.0).then_some(t - 2.0), 0.0, 5.0, 10).is_none());
     }
 }

@@ -532,7 +532,9 @@ impl WorldAggregate {
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let hit = point(root.t);
             let e = known(hit.x, hit.y)?;
-            let var = root::root_variance(gap, root, e.var)?;
+            let step = 0.25 * self.params.cell_m;
+            let band = root::band_variance(gap, root, e.var.sqrt(), step, 0.0, max_range);
+            let var = root::root_variance(gap, root, e.var)?.max(band);
             return Some(RayEstimate {
                 range: Some(root.t),
                 range_var: Some(var),
