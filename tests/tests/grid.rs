@@ -22,7 +22,10 @@ fn a_grid_larger_than_64_kib_matches_point_queries_and_the_ground_truth() -> any
             hi[k] = hi[k].max(s[k] + 10.0);
         }
     }
-    h.wait_status("4 accepted scans", |s| s.scans_accepted == 4)?;
+    // The maps stop changing (the aggregate fused all four): grid and points read one snapshot.
+    h.wait_status("4 scans in window and aggregate", |s| {
+        s.scans_accepted == 4 && s.aggregate.inserts == 4
+    })?;
 
     let rep = h.client.grid(lo, hi, 0.15)?;
     let cells = rep.cols as usize * rep.rows as usize;
