@@ -332,13 +332,17 @@ impl LocalRangeMap {
         if grazing < SHADOW_GRAZING_FRACTION {
             return None;
         }
-        let var = self.root_variance(gap, &p, root)?;
+        // One range variance at the crossing serves the height's and the point's σ.
         let (inc, az, _) = self.look_at(&p)?;
+        let (_, var_r) = self.predict_range(inc, az);
+        let var = root::root_variance(gap, root, var_r)?;
+        let w = self.pose.rotation * unit(inc, az);
+        let sd_r = var_r.sqrt();
         Some(HeightEstimate {
             z: top - root.t,
             var,
             grazing,
-            point_sd: self.point(inc, az).1,
+            point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
             provenance: self.provenance_at(inc, az),
         })
     }
