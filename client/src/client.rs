@@ -160,7 +160,9 @@ impl Client {
                     action: "query liveliness",
                     source,
                 })?;
-            if replies.recv().is_ok() {
+            // Only a token counts: an error reply (an access-control refusal, say) is not the
+            // daemon.
+            if replies.iter().any(|reply| reply.result().is_ok()) {
                 return Ok(());
             }
             if Instant::now() >= deadline {
