@@ -120,8 +120,6 @@ pub struct HeightEstimate {
     /// Per-axis σ (x, y, z) of the surface point along the sensor's ray there, metres (seed 000
     /// Table I); a height field's is (0, 0, σ_z).
     pub point_sd: [f64; 3],
-    /// How much data stands behind the estimate.
-    pub provenance: Provenance,
 }
 
 /// A predicted hit along a ray.
@@ -343,8 +341,14 @@ impl LocalRangeMap {
             var,
             grazing,
             point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
-            provenance: self.provenance_at(inc, az),
         })
+    }
+
+    /// How much training data stands behind this map's answer at map point `p` (graded only
+    /// for the answer a query returns: the nearest-datum search is O(n) per covering expert).
+    pub fn provenance(&self, p: &Vector3<f64>) -> Provenance {
+        self.look_at(p)
+            .map_or(Provenance::None, |(inc, az, _)| self.provenance_at(inc, az))
     }
 
     /// How much training data stands behind the prediction along (θ, φ).

@@ -178,8 +178,21 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         z_var_m2: Some(var),
         point_sigma_m: Some(first.estimate.point_sd.map(|v| v * s)),
         source,
-        provenance: first.estimate.provenance,
+        provenance: provenance(snapshot, &first, x, y),
         refusal: None,
+    }
+}
+
+/// How much data stands behind `answer` at (x, y), graded by the map that gave it, for the
+/// answer returned only (the window's nearest-datum search stays off the fusion and calibration
+/// paths, which need the height alone).
+fn provenance(snapshot: &MapSnapshot, answer: &RawAnswer, x: f64, y: f64) -> Provenance {
+    match answer.by {
+        Answerer::Window(i) => snapshot.maps()[i].provenance(&Vector3::new(x, y, answer.estimate.z)),
+        Answerer::Aggregate => snapshot
+            .aggregate
+            .as_ref()
+            .map_or(Provenance::None, |a| a.provenance(x, y)),
     }
 }
 
@@ -232,47 +245,44 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         .as_ref()
         .filter(|_| !settled)
         .and_then(|a| a.cast(origin, dir, ray.max_range_m));
-    let calibrated = |a: &RayEstimate, source: Source| {
-        a.range
+    // A hit's range variance, calibrated once, travels with its answer.
+    let calibrated = |a: RayEstimate, source: Source| {
+        let var = a
+            .range
             .zip(a.range_var)
-            .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var))
+            .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var));
+        (a, source, var)
     };
     let window_miss = answers
         .iter()
         .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
     let answer = match (window_hit, aggregate) {
         (Some(w), Some(a)) if a.range.is_some() => {
-            let (vw, va) = (calibrated(w, Source::Window), calibrated(&a, Source::Aggregate));
-            if va.unwrap_or(f64::INFINITY) < vw.unwrap_or(f64::INFINITY) {
-                Some((a, Source::Aggregate))
+            let (w, a) = (calibrated(*w, Source::Window), calibrated(a, Source::Aggregate));
+            Some(if a.2.unwrap_or(f64::INFINITY) < w.2.unwrap_or(f64::INFINITY) {
+                a
             } else {
-                Some((*w, Source::Window))
-            }
+                w
+            })
         }
-        (Some(w), _) => Some((*w, Source::Window)),
-        (None, Some(a)) if a.range.is_some() => Some((a, Source::Aggregate)),
+        (Some(w), _) => Some(calibrated(*w, Source::Window)),
+        (None, Some(a)) if a.range.is_some() => Some(calibrated(a, Source::Aggregate)),
         (None, aggregate) => match (window_miss, aggregate) {
-            (Some(w), _) => Some((*w, Source::Window)),
-            (None, Some(a)) => Some((a, Source::Aggregate)),
+            (Some(w), _) => Some((*w, Source::Window, None)),
+            (None, Some(a)) => Some((a, Source::Aggregate, None)),
             (None, None) => None,
         },
     };
     match answer {
-        Some((a, source)) => {
-            let range_var = a
-                .range
-                .zip(a.range_var)
-                .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var));
-            RayItem {
-                range_m: a.range,
-                range_var_m2: range_var,
-                hit_probability: Some(a.hit_probability),
-                hit_point_m: a.range.map(|t| (origin + dir * t).into()),
-                hit_sigma_m: range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
-                source,
-                provenance: a.provenance,
-            }
-        }
+        Some((a, source, range_var)) => RayItem {
+            range_m: a.range,
+            range_var_m2: range_var,
+            hit_probability: Some(a.hit_probability),
+            hit_point_m: a.range.map(|t| (origin + dir * t).into()),
+            hit_sigma_m: range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
+            source,
+            provenance: a.provenance,
+        },
         None => RayItem {
             range_m: None,
             range_var_m2: None,

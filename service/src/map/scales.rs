@@ -159,7 +159,6 @@ mod tests {
                 var: sd * sd,
                 grazing,
                 point_sd: [0.0, 0.0, sd],
-                provenance: rangegp_proto::msg::Provenance::Observed,
             };
             scales.factor(Source::Window, rho, &e)
         };

@@ -10,7 +10,6 @@ use crate::map::prior::Prior;
 use crate::map::root;
 use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
-use rangegp_proto::msg::Provenance;
 
 /// Kernel input: R·u (3), position (3), R·(cos γ, sin γ) (2).
 type Features = [f64; 8];
@@ -199,9 +198,6 @@ impl Aggregate for PoseAugmentedGp {
             var,
             grazing: f64::INFINITY,
             point_sd: [0.0, 0.0, var.sqrt()],
-            // The seed-000 baseline is scored offline and never served; it does not grade its
-            // answers, and calls them interpolated by convention.
-            provenance: Provenance::Interpolated,
         })
     }
 

@@ -232,16 +232,12 @@ impl WorldAggregate {
         })
     }
 
-    /// Folds every scan of `batch` in, in order: each scan's predicted cell heights are fused
-    /// by inverse variance, then every tile any of them touched is refitted once (a batch costs
-    /// the cells of each scan but the refits of one). On a failed refit the aggregate keeps the
-    /// fused cells and the tiles it had; the caller publishes a copy only on success.
-    pub fn insert_all(&mut self, batch: &[(&ScanInput, &LocalRangeMap)]) -> Result<(), AggregateError> {
-        self.insert_all_within(batch, self.params.max_reach_m)
-    }
-
-    /// [`Self::insert_all`] with each scan fused out to `reach_m` of its sensor (at most
-    /// `max_reach_m`): the cost of a scan grows as the square of its reach.
+    /// Folds every scan of `batch` in, in order, each out to `reach_m` of its sensor (at most
+    /// `max_reach_m`; a scan's cost grows as the square of its reach): each scan's predicted cell
+    /// heights are fused by inverse variance, then every tile any of them touched is refitted
+    /// once (a batch costs the cells of each scan but the refits of one). On a failed refit the
+    /// aggregate keeps the fused cells and the tiles it had; the caller publishes a copy only on
+    /// success.
     pub fn insert_all_within(
         &mut self,
         batch: &[(&ScanInput, &LocalRangeMap)],
@@ -521,8 +517,9 @@ impl WorldAggregate {
         // ground within a correlation length of data counts: beyond it the surface is the
         // tiles' smooth continuation, and a ray must not stop on it.
         let known = |x: f64, y: f64| {
-            self.elevation(x, y)
-                .filter(|e| e.provenance != Provenance::Extrapolated)
+            self.graded(x, y)
+                .filter(|(_, p)| *p != Provenance::Extrapolated)
+                .map(|(e, _)| e)
         };
         let gap = |t: f64| {
             let p = point(t);
@@ -531,7 +528,7 @@ impl WorldAggregate {
         let samples = ((max_range / (0.5 * self.params.cell_m)).ceil() as usize).clamp(8, 4000);
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let hit = point(root.t);
-            let e = known(hit.x, hit.y)?;
+            let (e, provenance) = self.graded(hit.x, hit.y)?;
             let step = 0.25 * self.params.cell_m;
             let band = root::band_variance(gap, root, e.var.sqrt(), step, 0.0, max_range);
             let var = root::root_variance(gap, root, e.var)?.max(band);
@@ -539,7 +536,7 @@ impl WorldAggregate {
                 range: Some(root.t),
                 range_var: Some(var),
                 hit_probability: normal_cdf((max_range - root.t) / var.sqrt().max(1e-12)),
-                provenance: e.provenance,
+                provenance,
             });
         }
         let closest = (0..=samples)
@@ -556,18 +553,16 @@ impl WorldAggregate {
             provenance: Provenance::None,
         })
     }
-}
 
-impl Aggregate for WorldAggregate {
-    fn name(&self) -> &'static str {
-        "world tiled elevation experts"
+    /// How much data stands behind the answer at (x, y): graded by the distance to the nearest
+    /// fused cell against the experts' length scale (`None` where nothing is answered).
+    pub fn provenance(&self, x: f64, y: f64) -> Provenance {
+        self.graded(x, y).map_or(Provenance::None, |(_, p)| p)
     }
 
-    fn insert(&mut self, scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
-        self.insert_all(&[(scan, local)])
-    }
-
-    fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+    /// The height at (x, y) with its provenance: the tiles blended with a partition of unity,
+    /// where a fused cell lies within `max_gap_m`.
+    fn graded(&self, x: f64, y: f64) -> Option<(HeightEstimate, Provenance)> {
         let datum_m = self.nearest_cell(x, y)?;
         let (ti, tj) = self.tile_of(self.cell_of(x, y));
         let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
@@ -587,14 +582,28 @@ impl Aggregate for WorldAggregate {
         (wsum > 0.0).then(|| {
             let z = m1 / wsum;
             let var = (m2 / wsum - z * z).max(0.0);
-            HeightEstimate {
+            let estimate = HeightEstimate {
                 z,
                 var,
                 grazing: f64::INFINITY,
                 point_sd: [0.0, 0.0, var.sqrt()],
-                provenance: provenance_of(datum_m, self.params.length_scale),
-            }
+            };
+            (estimate, provenance_of(datum_m, self.params.length_scale))
         })
+    }
+}
+
+impl Aggregate for WorldAggregate {
+    fn name(&self) -> &'static str {
+        "world tiled elevation experts"
+    }
+
+    fn insert(&mut self, scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
+        self.insert_all_within(&[(scan, local)], self.params.max_reach_m)
+    }
+
+    fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+        self.graded(x, y).map(|(e, _)| e)
     }
 
     fn len(&self) -> usize {
@@ -648,7 +657,7 @@ mod tests {
     #[test]
     fn provenance_follows_the_distance_to_the_nearest_fused_cell() {
         let agg = block();
-        let at = |x: f64, y: f64| agg.elevation(x, y).map(|e| e.provenance);
+        let at = |x: f64, y: f64| agg.elevation(x, y).map(|_| agg.provenance(x, y));
         // On a cell centre, and at a cell corner (0.18 m from four centres, within 0.3 ℓ).
         assert_eq!(at(2.125, 2.125), Some(Provenance::Observed));
         assert_eq!(at(2.0, 2.0), Some(Provenance::Observed));
