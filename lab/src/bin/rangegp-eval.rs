@@ -2,12 +2,18 @@
 
 use anyhow::Result;
 use clap::Parser;
-use rangegp_lab::eval::{run, EvalOptions};
+use rangegp_lab::eval::{run, EvalOptions, Experiment};
 
 fn main() -> Result<()> {
     let opts = EvalOptions::parse();
     let summary = run(&opts)?;
-    println!("\n  written: {}", opts.out.join("summary.json").display());
+    // The experiments outside `all` write (and name) their own report instead.
+    if !matches!(
+        opts.experiment,
+        Experiment::Calibration | Experiment::View | Experiment::Sitemap
+    ) {
+        println!("\n  written: {}", opts.out.join("summary.json").display());
+    }
     match summary.failures.len() {
         0 => Ok(()),
         n => anyhow::bail!("{n} evaluation bar(s) missed"),

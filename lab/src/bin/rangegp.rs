@@ -215,12 +215,16 @@ fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
     let elevation = Raster::from_grid(rep, &rep.elevation_m, |z| z);
     Heatmap::new("Elevation", "elevation (m)").save(file, &elevation)?;
     let sigma = Raster::from_grid(rep, &rep.variance_m2, f64::sqrt);
-    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("grid");
-    let sigma_file = file.with_file_name(format!("{stem}_sigma.png"));
     Heatmap::new("σ of the elevation", "σ (m)")
         .gradient(colorous::MAGMA)
-        .save(&sigma_file, &sigma)?;
+        .save(&sigma_beside(file), &sigma)?;
     Ok(())
+}
+
+/// `<stem>_sigma.png` beside `file`: where the σ picture of `file`'s layer goes.
+fn sigma_beside(file: &std::path::Path) -> std::path::PathBuf {
+    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("layer");
+    file.with_file_name(format!("{stem}_sigma.png"))
 }
 
 /// The range image of a lidar view to `file` and its σ beside it, over azimuth and elevation
@@ -248,20 +252,31 @@ fn draw_view(rep: &ViewReply, req: &ViewRequest, file: &std::path::Path) -> Resu
         layer[row * rep.cols as usize + col].map(f64::from)
     };
     let res = 0.5;
-    let range = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
-        pixel(az, el, &rep.range_m)
-    });
-    Heatmap::new("Range as the sensor would see the map", "range (m)")
-        .axes("azimuth (°, left of ahead)", "elevation (°)")
-        .save(file, &range)?;
-    let sigma = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
-        pixel(az, el, &rep.sigma_m)
-    });
-    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("view");
-    Heatmap::new("σ of the range", "σ (m)")
-        .axes("azimuth (°, left of ahead)", "elevation (°)")
-        .gradient(colorous::MAGMA)
-        .save(&file.with_file_name(format!("{stem}_sigma.png")), &sigma)?;
+    let layers = [
+        (
+            file.to_path_buf(),
+            "Range as the sensor would see the map",
+            "range (m)",
+            &rep.range_m,
+            colorous::VIRIDIS,
+        ),
+        (
+            sigma_beside(file),
+            "σ of the range",
+            "σ (m)",
+            &rep.sigma_m,
+            colorous::MAGMA,
+        ),
+    ];
+    for (path, title, unit, layer, gradient) in layers {
+        let raster = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
+            pixel(az, el, layer)
+        });
+        Heatmap::new(title, unit)
+            .axes("azimuth (°, left of ahead)", "elevation (°)")
+            .gradient(gradient)
+            .save(&path, &raster)?;
+    }
     Ok(())
 }
 

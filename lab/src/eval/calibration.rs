@@ -10,26 +10,21 @@
 //! answered (window or aggregate); points that no scan could see (occluded, or outside every
 //! field of view) form a band of their own, where a refusal is the right answer.
 
-use super::progress;
+use super::drive::{map_drive, Drive, MappedDrive};
 use super::scores::{Sample, Scores};
-use crate::scangen::to_message;
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
 use rangegp_service::config::Config;
-use rangegp_service::ingest::validate::{validate, ValidationLimits};
-use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
-use rangegp_service::map::calibration::Calibrator;
 use rangegp_service::map::local::normal_quantile;
-use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
+use rangegp_service::map::query;
 use rangegp_sim::family::FAMILY_SIZE_M;
-use rangegp_sim::{family, simulate_scan, Heightmap, Path, ScannerPreset, TerrainSpec};
+use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::BTreeMap;
-use std::sync::Arc;
 
 /// Range bands, metres from the last sensor position (the last is open-ended).
 pub const BANDS: [(f64, f64, &str); 5] = [
@@ -309,52 +304,20 @@ fn run_one(
     preset: &ScannerPreset,
     opts: &CalibrationOptions,
 ) -> Result<BTreeMap<(&'static str, &'static str), Bin>> {
-    let config = &opts.config;
-    let params = config.map_params();
-    let scans = if opts.quick { 6 } else { 20 };
-    let path = Path::wander(opts.seed ^ 0xca1, terrain, scans, 1.0, 0.25);
-    let poses: Vec<Isometry3<f64>> = (0..scans)
-        .map(|i| path.pose(terrain, i, preset.mount_height_m))
-        .collect();
-    let bar = progress::bar(scans as u64, &format!("  {} scans", preset.name));
-    let messages: Vec<_> = poses
-        .par_iter()
-        .enumerate()
-        .map(|(i, pose)| {
-            let mut rng = Pcg64::seed_from_u64(opts.seed ^ ((i as u64) << 20) ^ 0x5ca);
-            let rays = simulate_scan(terrain, pose, preset, &mut rng);
-            let (mut header, points) = to_message(preset, pose, &rays, 1_000 + i as u64);
-            header.protocol_version = rangegp_proto::PROTOCOL_VERSION;
-            header.sequence = i as u64 + 1;
-            bar.inc(1);
-            (header, points)
-        })
-        .collect();
-    bar.finish_and_clear();
-    let limits = ValidationLimits {
-        max_points: config.ingest.max_points,
-        max_future_ns: u64::MAX,
-    };
-    let mut window = Window::new(config.window.capacity);
-    let mut world = WorldAggregate::new(WorldParams::default());
-    let mut calibrator = config.gp.prequential_calibration.then(Calibrator::default);
-    let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
-    for (header, points) in &messages {
-        let input = validate(header, points, &limits, 0)
-            .map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
-        let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
-        let scales = calibrator.as_mut().map(|c| {
-            c.observe(&snapshot, &input, &map);
-            c.scales()
-        });
-        world.insert_and_evict(&input, &map, config.aggregate.radius_m)?;
-        window.push(map);
-        snapshot = window
-            .snapshot()
-            .with_aggregate(Some(Arc::new(world.clone())))
-            .with_scales(scales.unwrap_or_default())
-            .with_max_sigma(config.query.max_sigma_m);
-    }
+    let seed = opts.seed;
+    let MappedDrive { poses, snapshot, .. } = map_drive(
+        terrain,
+        preset,
+        &Drive {
+            config: &opts.config,
+            scans: if opts.quick { 6 } else { 20 },
+            path_seed: seed ^ 0xca1,
+            scan_seed: &|i| seed ^ ((i as u64) << 20) ^ 0x5ca,
+            stamp_base: 1_000,
+            evict: true,
+            progress: true,
+        },
+    )?;
 
     let last = poses[poses.len() - 1].translation.vector;
     let coverage = Coverage::of(preset);

@@ -4,6 +4,7 @@
 pub mod aggregate;
 pub mod bars;
 pub mod calibration;
+mod drive;
 pub mod local;
 pub mod overhang;
 pub mod progress;
@@ -143,21 +144,8 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
             seed: opts.seed,
         })?;
         sitemap::print_sitemap(&report);
-        std::fs::create_dir_all(&opts.out)?;
-        let file = opts.out.join("sitemap.json");
-        std::fs::write(&file, serde_json::to_string_pretty(&report)?)?;
-        for f in &report.failures {
-            println!("  bar missed: {f}");
-        }
-        println!("\n  written: {}", file.display());
-        return Ok(Summary {
-            quick: opts.quick,
-            seed: opts.seed,
-            local: None,
-            aggregate: None,
-            overhang: None,
-            failures: report.failures,
-        });
+        let failures = report.failures.clone();
+        return write_report(opts, "sitemap.json", &report, failures);
     }
     let want = |e: Experiment| opts.experiment == e || opts.experiment == Experiment::All;
     eprintln!("terrain: 100 m × 100 m at 5 cm, seed {} …", opts.seed);
@@ -261,52 +249,46 @@ fn run_view_experiment(opts: &EvalOptions) -> Result<Summary> {
         config: daemon_config(opts)?,
     })?;
     view::print_view(&report);
-    std::fs::create_dir_all(&opts.out)?;
-    let file = opts.out.join("view.json");
-    std::fs::write(&file, serde_json::to_string_pretty(&report)?)?;
-    for f in &report.failures {
-        println!("  bar missed: {f}");
-    }
-    println!("\n  written: {}", file.display());
-    Ok(Summary {
-        quick: opts.quick,
-        seed: opts.seed,
-        local: None,
-        aggregate: None,
-        overhang: None,
-        failures: report.failures,
-    })
+    let failures = report.failures.clone();
+    write_report(opts, "view.json", &report, failures)
 }
 
 /// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
 fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
-    let config = daemon_config(opts)?;
     let report = calibration::run_calibration(&calibration::CalibrationOptions {
         quick: opts.quick,
         seed: opts.seed,
-        config,
+        config: daemon_config(opts)?,
     })?;
     calibration::print_calibration(&report);
-    std::fs::create_dir_all(&opts.out)?;
-    std::fs::write(
-        opts.out.join("calibration.json"),
-        serde_json::to_string_pretty(&report)?,
-    )?;
     if report.failures.is_empty() {
         println!("\nEvery cell with n ≥ {} calibrated.", calibration::MIN_CELL_N);
-    } else {
-        println!("\nCells out of bounds:");
-        for f in &report.failures {
-            println!("  {f}");
-        }
     }
-    println!("\n  written: {}", opts.out.join("calibration.json").display());
+    let failures = report.failures.clone();
+    write_report(opts, "calibration.json", &report, failures)
+}
+
+/// Writes an experiment's own report as `<out>/<file>`, prints the bars it missed, and returns
+/// them as the run's summary (the experiments outside `all` have no place in summary.json).
+fn write_report(
+    opts: &EvalOptions,
+    file: &str,
+    report: &impl Serialize,
+    failures: Vec<String>,
+) -> Result<Summary> {
+    std::fs::create_dir_all(&opts.out)?;
+    let path = opts.out.join(file);
+    std::fs::write(&path, serde_json::to_string_pretty(report)?)?;
+    for f in &failures {
+        println!("  bar missed: {f}");
+    }
+    println!("\n  written: {}", path.display());
     Ok(Summary {
         quick: opts.quick,
         seed: opts.seed,
         local: None,
         aggregate: None,
         overhang: None,
-        failures: report.failures,
+        failures,
     })
 }

@@ -8,24 +8,16 @@
 //! drive saw that get a range at all.
 
 use super::calibration::Coverage;
-use crate::scangen::to_message;
+use super::drive::{map_drive, Drive, MappedDrive};
 use anyhow::Result;
-use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use rand::SeedableRng;
-use rand_pcg::Pcg64;
+use nalgebra::{UnitQuaternion, Vector3};
 use rangegp_proto::msg::{Provenance, Ray, Source};
 use rangegp_service::config::Config;
-use rangegp_service::ingest::validate::{validate, ValidationLimits};
-use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
-use rangegp_service::map::aggregate::Aggregate;
-use rangegp_service::map::calibration::Calibrator;
-use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
+use rangegp_service::map::query;
 use rangegp_sim::family::FAMILY_SIZE_M;
-use rangegp_sim::{family, simulate_scan, Heightmap, Path, ScannerPreset};
-use rayon::prelude::*;
+use rangegp_sim::{family, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::collections::BTreeMap;
-use std::sync::Arc;
 
 /// Settings of the view evaluation.
 #[derive(Debug, Clone)]
@@ -241,53 +233,27 @@ struct Case {
 }
 
 fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &ViewOptions) -> Result<Case> {
-    let config = &opts.config;
-    let params = config.map_params();
-    let capacity = config.window.capacity;
+    let capacity = opts.config.window.capacity;
     let scans = capacity + if opts.quick { 12 } else { 24 };
-    let path = Path::wander(opts.seed ^ 0x71e, terrain, scans, 1.0, 0.25);
-    let poses: Vec<Isometry3<f64>> = (0..scans)
-        .map(|i| path.pose(terrain, i, preset.mount_height_m))
-        .collect();
-    let messages: Vec<_> = poses
-        .par_iter()
-        .enumerate()
-        .map(|(i, pose)| {
-            let mut rng = Pcg64::seed_from_u64(opts.seed ^ ((i as u64) << 24) ^ 0x71e);
-            let rays = simulate_scan(terrain, pose, preset, &mut rng);
-            let (mut header, points) = to_message(preset, pose, &rays, 2_000 + i as u64);
-            header.protocol_version = rangegp_proto::PROTOCOL_VERSION;
-            header.sequence = i as u64 + 1;
-            (header, points)
-        })
-        .collect();
-    let limits = ValidationLimits {
-        max_points: config.ingest.max_points,
-        max_future_ns: u64::MAX,
-    };
-    let mut win = Window::new(capacity);
+    let seed = opts.seed;
     // No eviction from the aggregate here: the drive stays within the daemon's radius.
-    let mut world = WorldAggregate::new(WorldParams::default());
-    let mut calibrator = config.gp.prequential_calibration.then(Calibrator::default);
-    let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
-    for (header, points) in &messages {
-        let input = validate(header, points, &limits, 0)
-            .map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
-        let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
-        let scales = calibrator.as_mut().map(|c| {
-            c.observe(&snapshot, &input, &map);
-            c.scales()
-        });
-        if config.aggregate.enabled {
-            world.insert(&input, &map)?;
-        }
-        win.push(map);
-        snapshot = win
-            .snapshot()
-            .with_aggregate(config.aggregate.enabled.then(|| Arc::new(world.clone())))
-            .with_scales(scales.unwrap_or_default())
-            .with_max_sigma(config.query.max_sigma_m);
-    }
+    let MappedDrive {
+        path,
+        poses,
+        snapshot,
+    } = map_drive(
+        terrain,
+        preset,
+        &Drive {
+            config: &opts.config,
+            scans,
+            path_seed: seed ^ 0x71e,
+            scan_seed: &|i| seed ^ ((i as u64) << 24) ^ 0x71e,
+            stamp_base: 2_000,
+            evict: false,
+            progress: false,
+        },
+    )?;
     let coverage = Coverage::of(preset);
     // Beside poses 2 … (evicted − 2) and beside the last few: never visited, 0.7 m aside.
     let evicted_until = scans - capacity;

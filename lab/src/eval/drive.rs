@@ -1,0 +1,113 @@
+//! A simulated drive mapped as the daemon maps it (validation, local maps, the window, the world
+//! aggregate, prequential σ calibration, one snapshot after each scan): the scene the
+//! calibration and view evaluations query.
+
+use super::progress;
+use crate::scangen::to_message;
+use anyhow::Result;
+use nalgebra::Isometry3;
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+use rangegp_service::config::Config;
+use rangegp_service::ingest::validate::{validate, ValidationLimits};
+use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
+use rangegp_service::map::calibration::Calibrator;
+use rangegp_service::map::{LocalRangeMap, MapSnapshot, Window};
+use rangegp_sim::{simulate_scan, Heightmap, Path, ScannerPreset};
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// How to drive: the scans, their seeds and stamps, and what the aggregate does.
+pub(super) struct Drive<'a> {
+    /// Daemon configuration mapped with (its window, calibration and aggregate settings).
+    pub config: &'a Config,
+    /// Poses along the wandering path, 1 m apart.
+    pub scans: usize,
+    /// Seed of the path.
+    pub path_seed: u64,
+    /// Seed of scan `i`'s noise.
+    pub scan_seed: &'a (dyn Fn(usize) -> u64 + Sync),
+    /// Stamp of scan `i` is `stamp_base + i`.
+    pub stamp_base: u64,
+    /// Evict aggregate tiles beyond `aggregate.radius_m`, as the daemon does (else keep all).
+    pub evict: bool,
+    /// Show a progress bar while simulating.
+    pub progress: bool,
+}
+
+/// The drive's path, poses and the snapshot after its last scan.
+pub(super) struct MappedDrive {
+    /// The path driven.
+    pub path: Path,
+    /// The sensor pose of each scan.
+    pub poses: Vec<Isometry3<f64>>,
+    /// The maps as queries see them after the last scan.
+    pub snapshot: MapSnapshot,
+}
+
+/// Simulates and maps `drive` on `terrain` with `preset`.
+pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Drive) -> Result<MappedDrive> {
+    let config = drive.config;
+    let params = config.map_params();
+    let path = Path::wander(drive.path_seed, terrain, drive.scans, 1.0, 0.25);
+    let poses: Vec<Isometry3<f64>> = (0..drive.scans)
+        .map(|i| path.pose(terrain, i, preset.mount_height_m))
+        .collect();
+    let bar = drive
+        .progress
+        .then(|| progress::bar(drive.scans as u64, &format!("  {} scans", preset.name)));
+    let messages: Vec<_> = poses
+        .par_iter()
+        .enumerate()
+        .map(|(i, pose)| {
+            let mut rng = Pcg64::seed_from_u64((drive.scan_seed)(i));
+            let rays = simulate_scan(terrain, pose, preset, &mut rng);
+            let (mut header, points) = to_message(preset, pose, &rays, drive.stamp_base + i as u64);
+            header.protocol_version = rangegp_proto::PROTOCOL_VERSION;
+            header.sequence = i as u64 + 1;
+            if let Some(bar) = &bar {
+                bar.inc(1);
+            }
+            (header, points)
+        })
+        .collect();
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    let limits = ValidationLimits {
+        max_points: config.ingest.max_points,
+        max_future_ns: u64::MAX,
+    };
+    let mut window = Window::new(config.window.capacity);
+    let mut world = WorldAggregate::new(WorldParams::default());
+    let mut calibrator = config.gp.prequential_calibration.then(Calibrator::default);
+    let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
+    for (header, points) in &messages {
+        let input = validate(header, points, &limits, 0)
+            .map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
+        let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
+        let scales = calibrator.as_mut().map(|c| {
+            c.observe(&snapshot, &input, &map);
+            c.scales()
+        });
+        if config.aggregate.enabled {
+            let radius_m = if drive.evict {
+                config.aggregate.radius_m
+            } else {
+                f64::INFINITY
+            };
+            world.insert_and_evict(&input, &map, radius_m)?;
+        }
+        window.push(map);
+        snapshot = window
+            .snapshot()
+            .with_aggregate(config.aggregate.enabled.then(|| Arc::new(world.clone())))
+            .with_scales(scales.unwrap_or_default())
+            .with_max_sigma(config.query.max_sigma_m);
+    }
+    Ok(MappedDrive {
+        path,
+        poses,
+        snapshot,
+    })
+}
