@@ -172,8 +172,9 @@ pub struct GpConfig {
     pub constant_range_m: f64,
     /// Online hyperparameter learning.
     pub online: OnlineConfig,
-    /// How each local expert's σ is tied to its own data: `leave_one_out` (default; scaled by
-    /// its standardised leave-one-out residuals, docs/EVALUATION.md "Calibration") or `none`.
+    /// How each local expert's σ is tied to its own data: `local_leave_one_out` (default; scaled
+    /// by the standardised leave-one-out residuals of the rays near each query),
+    /// `leave_one_out` (one scale per expert) or `none` (docs/EVALUATION.md "Calibration").
     pub variance_calibration: crate::map::tiles::VarianceCalibration,
     /// Scale σ per source and range bin by how well the maps predicted each next scan's returns
     /// (default on; docs/EVALUATION.md "Calibration").
@@ -346,7 +347,7 @@ impl Default for GpConfig {
             sensor_height_m: 0.75,
             constant_range_m: 10.0,
             online: OnlineConfig::default(),
-            variance_calibration: crate::map::tiles::VarianceCalibration::LeaveOneOut,
+            variance_calibration: crate::map::tiles::VarianceCalibration::LocalLeaveOneOut,
             prequential_calibration: true,
         }
     }

@@ -169,7 +169,7 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
         aggregate_ray_us: per_item_us(opts.repeats, n, || {
             rays.iter().for_each(|r| {
                 let (o, d) = (Vector3::from(r.origin_m), Vector3::from(r.direction).normalize());
-                std::hint::black_box(world.cast(o, d, r.max_range_m));
+                std::hint::black_box(world.cast(o, d, r.max_range_m, &|_| 1.0));
             })
         }),
         aggregate_insert_ms: insert_ms[insert_ms.len() / 2],

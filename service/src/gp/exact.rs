@@ -21,6 +21,11 @@ pub struct ExactGp<const D: usize = 3> {
     log_marginal_likelihood: f64,
     /// Factor on every latent variance (1 unless calibrated: [`ExactGp::set_variance_scale`]).
     variance_scale: f64,
+    /// Squared standardised leave-one-out residuals of the training points, when the variance
+    /// scale follows them locally ([`ExactGp::set_local_variance_scale`]).
+    local_z2: Option<Vec<f64>>,
+    /// The least local variance factor.
+    local_floor: f64,
 }
 
 impl<const D: usize> ExactGp<D> {
@@ -69,6 +74,8 @@ impl<const D: usize> ExactGp<D> {
             jitter: jitter_used,
             log_marginal_likelihood,
             variance_scale: 1.0,
+            local_z2: None,
+            local_floor: LOCAL_SCALE_BOUNDS.0,
         })
     }
 
@@ -121,13 +128,20 @@ impl<const D: usize> ExactGp<D> {
         let mut v = vec![0.0; self.inputs.len()];
         self.kernel.values(x, &self.inputs, &mut v);
         let mean = v.iter().zip(&self.alpha).map(|(k, a)| k * a).sum();
+        let prior = self.kernel.diagonal(x);
+        let scale = self.scale_at(&v, prior);
         let explained = vector::forward_explained(&self.factor_packed, &mut v);
-        (
-            mean,
-            self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0),
-        )
+        (mean, scale * (prior - explained).max(0.0))
     }
 }
+
+/// Exponent on the kernel correlation that weights a training point's residual in the local
+/// variance factor (higher: more local).
+pub const LOCAL_SHARPNESS: i32 = 4;
+/// Pseudo-points at the whole GP's factor in the local variance factor.
+pub const LOCAL_PRIOR_WEIGHT: f64 = 4.0;
+/// Bounds of a local variance factor.
+pub const LOCAL_SCALE_BOUNDS: (f64, f64) = (0.05, 1e6);
 
 impl<const D: usize> ExactGp<D> {
     /// Standardised leave-one-out residuals zᵢ = αᵢ / √[(K + Σ)⁻¹]ᵢᵢ of the training targets
@@ -164,6 +178,40 @@ impl<const D: usize> ExactGp<D> {
         self.variance_scale
     }
 
+    /// Makes the variance factor local: at a query point it is the mean of the training points'
+    /// squared standardised leave-one-out residuals `z` (one per training point), weighted by
+    /// their kernel correlation with the point raised to [`LOCAL_SHARPNESS`], together with
+    /// [`LOCAL_PRIOR_WEIGHT`] pseudo-points at the whole GP's `scale`. Where the data are rough
+    /// the variance widens, where the kernel explains them it narrows; far from every training
+    /// point it is the whole GP's. The factor never falls below `floor` (at least
+    /// [`LOCAL_SCALE_BOUNDS`]`.0`): 1 where the training targets are not independent measurements
+    /// and their agreement proves nothing. Panics on a length mismatch or a non-positive scale
+    /// (misuse).
+    pub fn set_local_variance_scale(&mut self, z: &[f64], scale: f64, floor: f64) {
+        assert_eq!(z.len(), self.inputs.len(), "one residual per training point");
+        self.set_variance_scale(scale.max(floor));
+        self.local_z2 = Some(z.iter().map(|v| v * v).collect());
+        self.local_floor = floor.max(LOCAL_SCALE_BOUNDS.0);
+    }
+
+    /// The variance factor at a point whose kernel column is `column` and prior variance
+    /// `prior`.
+    fn scale_at(&self, column: &[f64], prior: f64) -> f64 {
+        let Some(z2) = &self.local_z2 else {
+            return self.variance_scale;
+        };
+        let inv = if prior > 0.0 { 1.0 / prior } else { 0.0 };
+        let (mut sw, mut swz) = (0.0, 0.0);
+        for (k, z) in column.iter().zip(z2) {
+            let r = (k * inv).clamp(0.0, 1.0);
+            let w = r.powi(LOCAL_SHARPNESS);
+            sw += w;
+            swz += w * z;
+        }
+        let s = (swz + LOCAL_PRIOR_WEIGHT * self.variance_scale) / (sw + LOCAL_PRIOR_WEIGHT);
+        s.clamp(self.local_floor, LOCAL_SCALE_BOUNDS.1)
+    }
+
     /// The packed factor as a square lower-triangular matrix (for faer's multi-column solves).
     fn unpacked_factor(&self) -> Mat<f64> {
         let n = self.inputs.len();
@@ -189,13 +237,15 @@ impl<const D: usize> ExactGp<D> {
             for (j, x) in block.iter().enumerate() {
                 self.kernel.values(x, &self.inputs, kstar.col_as_slice_mut(j));
             }
-            for j in 0..block.len() {
+            let mut scales = Vec::with_capacity(block.len());
+            for (j, x) in block.iter().enumerate() {
                 means.push((0..n).map(|i| kstar[(i, j)] * self.alpha[i]).sum());
+                scales.push(self.scale_at(kstar.col_as_slice(j), self.kernel.diagonal(x)));
             }
             solve_lower_triangular_in_place(factor.as_ref(), kstar.as_mut(), Par::Seq);
             for (j, x) in block.iter().enumerate() {
                 let explained: f64 = (0..n).map(|i| kstar[(i, j)] * kstar[(i, j)]).sum();
-                vars.push(self.variance_scale * (self.kernel.diagonal(x) - explained).max(0.0));
+                vars.push(scales[j] * (self.kernel.diagonal(x) - explained).max(0.0));
             }
         }
         (means, vars)
@@ -236,6 +286,53 @@ mod tests {
         let ((m1, v1), (m4, v4)) = (gp.mean_variance(&probe), scaled.mean_variance(&probe));
         assert_eq!(m1, m4);
         assert!((v4 - 4.0 * v1).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_local_variance_scale_widens_where_the_residuals_are_large_and_nowhere_else() {
+        // A line of points: smooth on the left, a sharp zigzag the kernel cannot follow on the
+        // right.
+        let xs: Vec<[f64; 3]> = (0..60).map(|i| [i as f64 * 0.1, 0.0, 0.0]).collect();
+        let ys: Vec<f64> = xs
+            .iter()
+            .enumerate()
+            .map(|(i, x)| {
+                if x[0] < 3.0 {
+                    0.1 * x[0]
+                } else {
+                    0.3 + 0.05 * ((i % 2) as f64 - 0.5)
+                }
+            })
+            .collect();
+        let noise = vec![1e-6; xs.len()];
+        let fitted = ExactGp::fit(
+            Kernel::matern32(0.05, 0.5),
+            xs,
+            &ys,
+            &noise,
+            JitterPolicy::default(),
+        )
+        .expect("fit");
+        let z = fitted.loo_residuals();
+        let scale = 2.0;
+        let (mut uniform, mut local) = (fitted.clone(), fitted);
+        uniform.set_variance_scale(scale);
+        local.set_local_variance_scale(&z, scale, 0.0);
+        let ratio = |x: f64| {
+            let p = [x, 0.0, 0.0];
+            local.mean_variance(&p).1 / uniform.mean_variance(&p).1
+        };
+        assert!(ratio(1.05) < 0.5, "smooth side: {}", ratio(1.05));
+        assert!(ratio(4.55) > 2.0, "rough side: {}", ratio(4.55));
+        // Far from every point, the whole GP's factor.
+        assert!((ratio(40.0) - 1.0).abs() < 1e-6, "far: {}", ratio(40.0));
+        // The batched path applies the same factor.
+        let probes = [[1.05, 0.0, 0.0], [4.55, 0.0, 0.0], [2.97, 0.1, 0.0]];
+        let (means, vars) = local.predict_batch(&probes);
+        for (k, p) in probes.iter().enumerate() {
+            let (m, v) = local.mean_variance(p);
+            assert!((means[k] - m).abs() < 1e-12 && (vars[k] - v).abs() <= 1e-9 * v);
+        }
     }
 
     #[test]

@@ -55,6 +55,15 @@ impl ElevationGp {
         (means, vars)
     }
 
+    /// Widens its variance where its own leave-one-out residuals say the data disagree, locally
+    /// ([`ExactGp::set_local_variance_scale`]), never narrowing it below the kernel's: its
+    /// targets are other models' predictions, whose agreement is no evidence of accuracy.
+    pub fn widen_locally(&mut self) {
+        let z = self.gp.loo_residuals();
+        let scale = crate::map::tiles::loo_scale(&z);
+        self.gp.set_local_variance_scale(&z, scale, 1.0);
+    }
+
     /// The points and noise variances it was fitted to.
     pub fn training(&self) -> (&[[f64; 3]], &[f64]) {
         (&self.points, &self.noise_var)

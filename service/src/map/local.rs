@@ -439,7 +439,13 @@ impl LocalRangeMap {
 
     /// Casts a map-frame ray (unit `dir`) through this map's surface up to `max_range`.
     /// `None` when no point of the ray lies in this scan's field of view.
-    pub fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<RayEstimate> {
+    pub fn cast(
+        &self,
+        origin: Vector3<f64>,
+        dir: Vector3<f64>,
+        max_range: f64,
+        sd_factor: &dyn Fn(&Vector3<f64>) -> f64,
+    ) -> Option<RayEstimate> {
         let point = |t: f64| origin + dir * t;
         let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
         let gap = |t: f64| self.gap(&point(t));
@@ -447,15 +453,16 @@ impl LocalRangeMap {
             let t = root.t;
             let (inc, az, _) = self.look_at(&point(t))?;
             let (_, var_r) = self.predict_range(inc, az);
+            let f = sd_factor(&point(t));
             let band = root::band_variance(
                 gap,
                 root,
-                var_r.sqrt(),
+                f * var_r.sqrt(),
                 max_range / samples as f64 / 4.0,
                 0.0,
                 max_range,
             );
-            let var = self.root_variance(gap, &point(t), root)?.max(band);
+            let var = (f * f * self.root_variance(gap, &point(t), root)?).max(band);
             let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
             let (inc, az, _) = self.look_at(&point(t))?;
             return Some(RayEstimate {
@@ -466,22 +473,23 @@ impl LocalRangeMap {
             });
         }
         // No crossing: the hit probability is set by the closest approach to the surface.
-        let mut closest: Option<(f64, f64, f64)> = None;
+        let mut closest: Option<(f64, f64, f64, Vector3<f64>)> = None;
         for k in 0..=samples {
             let p = point(max_range * k as f64 / samples as f64);
             if let Some((inc, az, dist)) = self.look_at(&p) {
                 let g = dist - self.mean_range(inc, az);
                 if closest.is_none_or(|c| g > c.0) {
-                    closest = Some((g, inc, az));
+                    closest = Some((g, inc, az, p));
                 }
             }
         }
-        let (g, inc, az) = closest?;
+        let (g, inc, az, p) = closest?;
         let (_, var_r) = self.predict_range(inc, az);
+        let sd = sd_factor(&p) * var_r.sqrt();
         Some(RayEstimate {
             range: None,
             range_var: None,
-            hit_probability: normal_cdf(g / var_r.sqrt().max(1e-12)),
+            hit_probability: normal_cdf(g / sd.max(1e-12)),
             provenance: Provenance::None,
         })
     }
@@ -685,13 +693,13 @@ mod tests {
         let origin = Vector3::new(1.0, 0.5, ground + 1.2);
         let dir = Vector3::new(1.0, 0.1, -0.35).normalize();
         let truth = terrain.cast(origin, dir, 10.0).expect("ground hit");
-        let est = map.cast(origin, dir, 10.0).expect("in view");
+        let est = map.cast(origin, dir, 10.0, &|_| 1.0).expect("in view");
         let range = est.range.expect("hit");
         let sd = est.range_var.expect("variance").sqrt();
         assert!((range - truth).abs() < 0.1, "{range} vs {truth}");
         assert!((range - truth).abs() < 4.0 * sd + 0.01);
         assert!(est.hit_probability > 0.99);
-        let up = map.cast(origin, Vector3::new(1.0, 0.0, 0.05).normalize(), 3.0);
+        let up = map.cast(origin, Vector3::new(1.0, 0.0, 0.05).normalize(), 3.0, &|_| 1.0);
         assert!(up.is_none_or(|e| e.range.is_none() && e.hit_probability < 0.5));
     }
 

@@ -226,10 +226,13 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         .filter(|(d, m)| *d < m.max_range() + ray.max_range_m)
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Each map casts with its calibrated σ, so that a grazing ray's band, its range variance and
+    // its hit probability all see the σ a planner is given.
+    let window_factor = |p: &Vector3<f64>| sd_factor(snapshot, Source::Window, p);
     let answers: Vec<_> = near
         .into_iter()
         .take(CANDIDATES)
-        .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m))
+        .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m, &window_factor))
         .collect();
     let window_hit = answers.iter().filter(|a| a.range.is_some()).min_by(|a, b| {
         a.range_var
@@ -240,19 +243,11 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     // may have fused that ground from nearer scans, is asked too (a cast over it costs a few
     // hundred µs).
     let settled = window_hit.is_some_and(|w| w.provenance == Provenance::Observed);
-    let aggregate = snapshot
-        .aggregate
-        .as_ref()
-        .filter(|_| !settled)
-        .and_then(|a| a.cast(origin, dir, ray.max_range_m));
-    // A hit's range variance, calibrated once, travels with its answer.
-    let calibrated = |a: RayEstimate, source: Source| {
-        let var = a
-            .range
-            .zip(a.range_var)
-            .map(|(t, var)| calibrated_range_var(snapshot, source, origin + dir * t, var));
-        (a, source, var)
-    };
+    let aggregate = snapshot.aggregate.as_ref().filter(|_| !settled).and_then(|a| {
+        let factor = |p: &Vector3<f64>| sd_factor(snapshot, Source::Aggregate, p);
+        a.cast(origin, dir, ray.max_range_m, &factor)
+    });
+    let calibrated = |a: RayEstimate, source: Source| (a, source, a.range.and(a.range_var));
     let window_miss = answers
         .iter()
         .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
@@ -295,16 +290,11 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     }
 }
 
-/// A hit's range variance with the snapshot's σ calibration applied: the factor the height
-/// answer at the hit point gets (the range's uncertainty is the height's seen along the ray).
-fn calibrated_range_var(snapshot: &MapSnapshot, source: Source, hit: Vector3<f64>, var: f64) -> f64 {
-    match raw_elevation(snapshot, hit.x, hit.y) {
-        Some(a) => {
-            let s = snapshot.scales.factor(source, a.rho_m, &a.estimate);
-            var * s * s
-        }
-        None => var,
-    }
+/// The snapshot's σ calibration factor for `source` at map point `p`: the factor the height
+/// answer there gets (a ray's range uncertainty is the height's seen along the ray); 1 where no
+/// map answers.
+fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
+    raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| snapshot.scales.factor(source, a.rho_m, &a.estimate))
 }
 
 /// Maps `f` over `items` on up to `threads` scoped threads, keeping order.

@@ -136,8 +136,12 @@ pub enum VarianceCalibration {
     /// Scaled by the mean square of the expert's standardised leave-one-out residuals (each
     /// training ray predicted from the others), shrunk toward 1 by [`LOO_PRIOR_RAYS`]
     /// pseudo-residuals: rough or misfit terrain widens σ, terrain the kernel explains keeps it.
-    #[default]
     LeaveOneOut,
+    /// As [`Self::LeaveOneOut`], but the scale at each query is the kernel-weighted mean of the
+    /// squared residuals of the rays near it ([`crate::gp::ExactGp::set_local_variance_scale`]):
+    /// within one tile a rim or a step widens σ around itself, not over the whole tile.
+    #[default]
+    LocalLeaveOneOut,
 }
 
 /// Pseudo-residuals of scale 1 added to every expert's leave-one-out evidence (a small tile
@@ -246,8 +250,13 @@ impl TiledGp {
             return;
         }
         self.experts.par_iter_mut().flatten().for_each(|gp| {
-            let scale = loo_scale(&gp.loo_residuals());
-            gp.set_variance_scale(scale);
+            let z = gp.loo_residuals();
+            let scale = loo_scale(&z);
+            if policy == VarianceCalibration::LocalLeaveOneOut {
+                gp.set_local_variance_scale(&z, scale, 0.0);
+            } else {
+                gp.set_variance_scale(scale);
+            }
         });
     }
 

@@ -9,7 +9,7 @@
 //! cells it changed. Predictions blend the covering tiles with a partition of unity (no seams).
 
 use super::{Aggregate, AggregateError};
-use crate::gp::{JitterPolicy, Kernel};
+use crate::gp::{CholeskyError, JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{normal_cdf, provenance_of, HeightEstimate, LocalRangeMap, RayEstimate};
 use crate::map::root;
@@ -383,8 +383,7 @@ impl WorldAggregate {
                 if p.points.is_empty() || p.points.len() != p.noise_var.len() {
                     return Ok((p.key, None));
                 }
-                let gp = ElevationGp::fit(&p.points, &p.noise_var, kernel, JitterPolicy::default())?;
-                Ok((p.key, Some(gp)))
+                Ok((p.key, Some(fit_tile(&p.points, &p.noise_var, kernel)?)))
             })
             .collect::<Result<_, AggregateError>>()?;
         for page in &fresh {
@@ -458,8 +457,7 @@ impl WorldAggregate {
                 if points.is_empty() {
                     return Ok(((ti, tj), None));
                 }
-                let gp = ElevationGp::fit(&points, &noise, kernel, JitterPolicy::default())?;
-                Ok(((ti, tj), Some(gp)))
+                Ok(((ti, tj), Some(fit_tile(&points, &noise, kernel)?)))
             })
             .collect::<Result<_, AggregateError>>()?;
         self.refits += fitted.len() as u64;
@@ -511,7 +509,13 @@ impl WorldAggregate {
     /// surface (in σ of the height there), as for a local map; a ray that first meets known
     /// ground already below it crossed the surface in ground the aggregate does not know: its
     /// hit probability is then near 1 and no range is given.
-    pub fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<RayEstimate> {
+    pub fn cast(
+        &self,
+        origin: Vector3<f64>,
+        dir: Vector3<f64>,
+        max_range: f64,
+        sd_factor: &dyn Fn(&Vector3<f64>) -> f64,
+    ) -> Option<RayEstimate> {
         let point = |t: f64| origin + dir * t;
         // Positive below the surface, negative above it: a crossing from − to + is a hit. Only
         // ground within a correlation length of data counts: beyond it the surface is the
@@ -529,9 +533,10 @@ impl WorldAggregate {
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let hit = point(root.t);
             let (e, provenance) = self.graded(hit.x, hit.y)?;
+            let f = sd_factor(&hit);
             let step = 0.25 * self.params.cell_m;
-            let band = root::band_variance(gap, root, e.var.sqrt(), step, 0.0, max_range);
-            let var = root::root_variance(gap, root, e.var)?.max(band);
+            let band = root::band_variance(gap, root, f * e.var.sqrt(), step, 0.0, max_range);
+            let var = (f * f * root::root_variance(gap, root, e.var)?).max(band);
             return Some(RayEstimate {
                 range: Some(root.t),
                 range_var: Some(var),
@@ -543,7 +548,7 @@ impl WorldAggregate {
             .filter_map(|k| {
                 let p = point(max_range * k as f64 / samples as f64);
                 self.elevation(p.x, p.y)
-                    .map(|e| (e.z - p.z) / e.var.sqrt().max(1e-12))
+                    .map(|e| (e.z - p.z) / (sd_factor(&p) * e.var.sqrt()).max(1e-12))
             })
             .reduce(f64::max)?;
         Some(RayEstimate {
@@ -591,6 +596,16 @@ impl WorldAggregate {
             (estimate, provenance_of(datum_m, self.params.length_scale))
         })
     }
+}
+
+/// One tile's expert: fitted to its cells, then its variance scaled locally by its own
+/// leave-one-out residuals (fused cells whose neighbours disagree with them more than their
+/// variances allow widen σ around themselves: rough ground, steps, and scans whose errors were
+/// fused as if independent).
+fn fit_tile(points: &[[f64; 3]], noise_var: &[f64], kernel: Kernel) -> Result<ElevationGp, CholeskyError> {
+    let mut gp = ElevationGp::fit(points, noise_var, kernel, JitterPolicy::default())?;
+    gp.widen_locally();
+    Ok(gp)
 }
 
 impl Aggregate for WorldAggregate {
@@ -676,19 +691,19 @@ mod tests {
         // 0.8 m down, i.e. after 0.8·√2 m.
         let origin = Vector3::new(1.0, 2.0, 1.0);
         let dir = Vector3::new(1.0, 0.0, -1.0).normalize();
-        let hit = agg.cast(origin, dir, 5.0).expect("known ground");
+        let hit = agg.cast(origin, dir, 5.0, &|_| 1.0).expect("known ground");
         let t = hit.range.expect("a hit");
         assert!((t - 0.8 * 2f64.sqrt()).abs() < 5e-3, "range {t}");
         assert!(hit.hit_probability > 0.99 && hit.range_var.is_some_and(|v| v > 0.0));
         assert_eq!(hit.provenance, Provenance::Observed);
         // Level and above the surface: no crossing, a small hit probability, not none.
         let miss = agg
-            .cast(Vector3::new(0.5, 2.0, 1.0), Vector3::x(), 3.0)
+            .cast(Vector3::new(0.5, 2.0, 1.0), Vector3::x(), 3.0, &|_| 1.0)
             .expect("known ground");
         assert!(miss.range.is_none() && miss.hit_probability < 1e-6);
         // Over nothing the aggregate knows: no answer at all.
         assert!(agg
-            .cast(Vector3::new(50.0, 50.0, 1.0), Vector3::x(), 5.0)
+            .cast(Vector3::new(50.0, 50.0, 1.0), Vector3::x(), 5.0, &|_| 1.0)
             .is_none());
     }
 
