@@ -180,9 +180,10 @@ pub fn bars(r: &ViewReport) -> Vec<String> {
     failures
 }
 
-/// The CI guard of the quick form: limits set just below what the quick run measured on
-/// 2026-11-24 (docs/EVALUATION.md "Views"), so a regression fails the build. They are not the
-/// issue's bars, which the full run does not meet yet (cov95).
+/// The CI guard of the quick form (docs/EVALUATION.md "Views"), so a regression fails the build.
+/// The evicted-area cov95 bound lies between the quick run with the local leave-one-out σ (0.895)
+/// and without it (0.870); the full run meets the bar (0.924). The other limits sit just
+/// below what the quick run measured on 2026-11-24.
 pub fn quick_regressions(r: &ViewReport) -> Vec<String> {
     let mut failures = Vec::new();
     let mut check = |ok: bool, what: String| {
@@ -198,8 +199,8 @@ pub fn quick_regressions(r: &ViewReport) -> Vec<String> {
         ),
     );
     check(
-        r.evicted_ray_cov95 >= 0.80,
-        format!("evicted cov95 {:.3} < 0.80", r.evicted_ray_cov95),
+        r.evicted_ray_cov95 >= 0.88,
+        format!("evicted cov95 {:.3} < 0.88", r.evicted_ray_cov95),
     );
     check(
         r.window_ray_cov95 >= 0.82,
