@@ -18,13 +18,13 @@ import time
 
 import iceoryx2 as iox2
 
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 FLAG_NO_RETURN = 1
 FLAG_RING_COLUMN_VALID = 2
 
 
 class ScanHeader(ctypes.Structure):
-    """Mirror of rangegp_proto::scan::ScanHeader (104 bytes, align 8)."""
+    """Mirror of rangegp_proto::scan::ScanHeader (152 bytes, align 8)."""
 
     _fields_ = [
         ("protocol_version", ctypes.c_uint32),
@@ -41,6 +41,13 @@ class ScanHeader(ctypes.Structure):
         ("qw", ctypes.c_double),
         ("max_range_m", ctypes.c_double),
         ("range_noise_per_m", ctypes.c_double),
+        # The sweep's twist in the sensor frame (all zero: a still sensor, nothing to deskew).
+        ("vx_mps", ctypes.c_double),
+        ("vy_mps", ctypes.c_double),
+        ("vz_mps", ctypes.c_double),
+        ("wx_radps", ctypes.c_double),
+        ("wy_radps", ctypes.c_double),
+        ("wz_radps", ctypes.c_double),
     ]
 
     @staticmethod
@@ -49,7 +56,7 @@ class ScanHeader(ctypes.Structure):
 
 
 class ScanPoint(ctypes.Structure):
-    """Mirror of rangegp_proto::scan::ScanPoint (20 bytes, align 4)."""
+    """Mirror of rangegp_proto::scan::ScanPoint (24 bytes, align 4)."""
 
     _fields_ = [
         ("range_m", ctypes.c_float),
@@ -59,6 +66,8 @@ class ScanPoint(ctypes.Structure):
         ("column", ctypes.c_uint16),
         ("flags", ctypes.c_uint16),
         ("reserved", ctypes.c_uint16),
+        # When the ray fired, ns after the header's stamp_ns (0: at the stamp).
+        ("time_offset_ns", ctypes.c_uint32),
     ]
 
     @staticmethod
@@ -66,7 +75,7 @@ class ScanPoint(ctypes.Structure):
         return "rangegp::ScanPoint"
 
 
-assert ctypes.sizeof(ScanHeader) == 104 and ctypes.sizeof(ScanPoint) == 20
+assert ctypes.sizeof(ScanHeader) == 152 and ctypes.sizeof(ScanPoint) == 24
 
 
 def flat_ground_scan(height: float, max_range: float) -> list:

@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 
 
 def main() -> int:

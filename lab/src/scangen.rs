@@ -4,7 +4,7 @@ use nalgebra::Isometry3;
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID};
-use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset, SimRay};
+use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset, SimRay, SweepMotion};
 
 /// Converts simulated rays taken from `pose` into a header (sequence and publisher id left for
 /// the publisher) and the point slice.
@@ -45,9 +45,25 @@ pub fn to_message(
                     0
                 },
             reserved: 0,
+            time_offset_ns: (r.time_offset_s * 1e9).round() as u32,
         })
         .collect();
     (header, points)
+}
+
+/// `header` with the sweep's twist (the daemon deskews each point by its `time_offset_ns`).
+pub fn with_motion(header: ScanHeader, motion: &SweepMotion) -> ScanHeader {
+    let ([vx_mps, vy_mps, vz_mps], [wx_radps, wy_radps, wz_radps]) =
+        (motion.linear_mps.into(), motion.angular_radps.into());
+    ScanHeader {
+        vx_mps,
+        vy_mps,
+        vz_mps,
+        wx_radps,
+        wy_radps,
+        wz_radps,
+        ..header
+    }
 }
 
 /// A seeded world (terrain, path, sensor) producing scans along the path.

@@ -46,6 +46,20 @@ pub struct ScanHeader {
     pub max_range_m: f64,
     /// Range noise standard deviation per metre of range (σ_i = coefficient · r_i), dimensionless.
     pub range_noise_per_m: f64,
+    /// The sensor's linear velocity during the sweep, in its own frame at `stamp_ns`, m/s, x
+    /// component (with the angular velocity: the twist the daemon deskews with; all six zero for
+    /// a sensor at rest or a driver that deskewed already).
+    pub vx_mps: f64,
+    /// Linear velocity, y component, m/s.
+    pub vy_mps: f64,
+    /// Linear velocity, z component, m/s.
+    pub vz_mps: f64,
+    /// The sensor's angular velocity during the sweep, in its own frame, rad/s, x component.
+    pub wx_radps: f64,
+    /// Angular velocity, y component, rad/s.
+    pub wy_radps: f64,
+    /// Angular velocity, z component, rad/s.
+    pub wz_radps: f64,
 }
 
 impl Default for ScanHeader {
@@ -65,6 +79,12 @@ impl Default for ScanHeader {
             qw: 1.0,
             max_range_m: 0.0,
             range_noise_per_m: 0.0,
+            vx_mps: 0.0,
+            vy_mps: 0.0,
+            vz_mps: 0.0,
+            wx_radps: 0.0,
+            wy_radps: 0.0,
+            wz_radps: 0.0,
         }
     }
 }
@@ -96,7 +116,13 @@ pub struct ScanPoint {
     pub flags: u16,
     /// Must be zero.
     pub reserved: u16,
+    /// When the ray fired, nanoseconds after the header's `stamp_ns` (0 when the driver does not
+    /// say, or deskewed already); at most [`MAX_TIME_OFFSET_NS`].
+    pub time_offset_ns: u32,
 }
+
+/// Latest a point may fire after its scan's stamp, nanoseconds (one second: a sweep is 50–200 ms).
+pub const MAX_TIME_OFFSET_NS: u32 = 1_000_000_000;
 
 impl ScanPoint {
     /// True when the ray produced a return.
@@ -168,7 +194,7 @@ mod tests {
 
     #[test]
     fn header_layout_is_the_documented_one() {
-        assert_eq!(size_of::<ScanHeader>(), 104);
+        assert_eq!(size_of::<ScanHeader>(), 152);
         assert_eq!(align_of::<ScanHeader>(), 8);
         assert_eq!(offset_of!(ScanHeader, protocol_version), 0);
         assert_eq!(offset_of!(ScanHeader, point_count), 4);
@@ -180,11 +206,15 @@ mod tests {
         assert_eq!(offset_of!(ScanHeader, qw), 80);
         assert_eq!(offset_of!(ScanHeader, max_range_m), 88);
         assert_eq!(offset_of!(ScanHeader, range_noise_per_m), 96);
+        assert_eq!(offset_of!(ScanHeader, vx_mps), 104);
+        assert_eq!(offset_of!(ScanHeader, vz_mps), 120);
+        assert_eq!(offset_of!(ScanHeader, wx_radps), 128);
+        assert_eq!(offset_of!(ScanHeader, wz_radps), 144);
     }
 
     #[test]
     fn point_layout_is_the_documented_one() {
-        assert_eq!(size_of::<ScanPoint>(), 20);
+        assert_eq!(size_of::<ScanPoint>(), 24);
         assert_eq!(align_of::<ScanPoint>(), 4);
         assert_eq!(offset_of!(ScanPoint, range_m), 0);
         assert_eq!(offset_of!(ScanPoint, inclination_rad), 4);
@@ -193,5 +223,6 @@ mod tests {
         assert_eq!(offset_of!(ScanPoint, column), 14);
         assert_eq!(offset_of!(ScanPoint, flags), 16);
         assert_eq!(offset_of!(ScanPoint, reserved), 18);
+        assert_eq!(offset_of!(ScanPoint, time_offset_ns), 20);
     }
 }

@@ -71,11 +71,14 @@ pub enum RejectReason {
     /// The pose lies outside `ingest.map_bounds_m`, or jumped from the publisher's last
     /// accepted pose faster than `ingest.max_speed_mps` allows (a localisation glitch).
     ImplausiblePose,
+    /// The sweep's twist is non-finite or beyond 100 m/s or 50 rad/s, or a point fired more
+    /// than a second after the stamp.
+    InvalidMotion,
 }
 
 impl RejectReason {
     /// Every reason, in status order.
-    pub const ALL: [RejectReason; 16] = [
+    pub const ALL: [RejectReason; 17] = [
         RejectReason::UnsupportedVersion,
         RejectReason::EmptyScan,
         RejectReason::TooManyPoints,
@@ -92,6 +95,7 @@ impl RejectReason {
         RejectReason::NoReturns,
         RejectReason::FitFailed,
         RejectReason::ImplausiblePose,
+        RejectReason::InvalidMotion,
     ];
 
     /// Stable snake_case name (status replies, logs, docs/PROTOCOL.md).
@@ -113,6 +117,7 @@ impl RejectReason {
             RejectReason::NoReturns => "no_returns",
             RejectReason::FitFailed => "fit_failed",
             RejectReason::ImplausiblePose => "implausible_pose",
+            RejectReason::InvalidMotion => "invalid_motion",
         }
     }
 }

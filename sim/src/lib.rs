@@ -18,6 +18,6 @@ pub mod trajectory;
 pub use family::{family, TerrainKind, TerrainSpec};
 pub use path::{level_pose, Path};
 pub use scene::{Surface, Tunnel};
-pub use sensor::{simulate_scan, ScannerPreset, SimRay};
+pub use sensor::{simulate_scan, simulate_sweep, ScannerPreset, SimRay, SweepMotion};
 pub use terrain::{CraterParams, Heightmap};
 pub use trajectory::{plan_trajectories, Trajectory, TrajectoryParams};

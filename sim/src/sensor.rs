@@ -1,7 +1,7 @@
 //! LiDAR presets and scan simulation against any [`Surface`].
 
 use crate::scene::Surface;
-use nalgebra::{Isometry3, Vector3};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
 
 /// A spinning LiDAR: ring inclinations × column azimuths, with its range limit and noise.
@@ -125,6 +125,92 @@ pub struct SimRay {
     pub true_range_m: Option<f64>,
     /// Range with sensor noise added (`None` for no return).
     pub measured_range_m: Option<f64>,
+    /// When the ray fired, seconds after the scan's stamp (0 for a scan taken at one instant).
+    pub time_offset_s: f64,
+}
+
+/// How a rotating lidar moves while it sweeps: its columns fire one after another over
+/// `sweep_s`, while the sensor moves with a constant twist in its own frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SweepMotion {
+    /// Time from the first column to the last, seconds.
+    pub sweep_s: f64,
+    /// Linear velocity in the sensor frame, m/s.
+    pub linear_mps: Vector3<f64>,
+    /// Angular velocity in the sensor frame, rad/s.
+    pub angular_radps: Vector3<f64>,
+}
+
+impl SweepMotion {
+    /// The sensor's pose `t` seconds into the sweep, relative to its pose at the stamp: the twist
+    /// integrated as 256 small steps in the moving frame (first order per step, so within
+    /// |v|·|ω|·t² / 512 of the exact motion; independent of the daemon's closed-form exponential,
+    /// so a test of one checks the other).
+    pub fn displacement(&self, t: f64) -> Isometry3<f64> {
+        const STEPS: usize = 256;
+        let dt = t / STEPS as f64;
+        let step = Isometry3::from_parts(
+            Translation3::from(self.linear_mps * dt),
+            UnitQuaternion::from_scaled_axis(self.angular_radps * dt),
+        );
+        (0..STEPS).fold(Isometry3::identity(), |pose, _| pose * step)
+    }
+}
+
+/// Casts a rotating lidar's sweep from `pose` (its pose at the stamp): column c of n fires at
+/// `sweep_s · c / (n − 1)`, from where the sensor is by then ([`SweepMotion::displacement`]).
+/// Angles are the sensor's own at firing time, as a driver reports them; noise as in
+/// [`simulate_scan`].
+pub fn simulate_sweep<S: Surface + ?Sized, R: Rng>(
+    surface: &S,
+    pose: &Isometry3<f64>,
+    preset: &ScannerPreset,
+    motion: &SweepMotion,
+    rng: &mut R,
+) -> Vec<SimRay> {
+    let columns = preset.azimuths_rad.len();
+    let times: Vec<f64> = (0..columns)
+        .map(|c| motion.sweep_s * c as f64 / (columns.max(2) - 1) as f64)
+        .collect();
+    let poses: Vec<Isometry3<f64>> = times.iter().map(|&t| pose * motion.displacement(t)).collect();
+    let mut rays = Vec::with_capacity(preset.ray_count());
+    for (ring, &inc) in preset.inclinations_rad.iter().enumerate() {
+        for (column, &az) in preset.azimuths_rad.iter().enumerate() {
+            let at = &poses[column];
+            let mut ray = cast_one(surface, at, preset, ring, column, inc, az, rng);
+            ray.time_offset_s = times[column];
+            rays.push(ray);
+        }
+    }
+    rays
+}
+
+/// One ray of `preset` from `pose`, with noise.
+#[allow(clippy::too_many_arguments)]
+fn cast_one<S: Surface + ?Sized, R: Rng>(
+    surface: &S,
+    pose: &Isometry3<f64>,
+    preset: &ScannerPreset,
+    ring: usize,
+    column: usize,
+    inc: f64,
+    az: f64,
+    rng: &mut R,
+) -> SimRay {
+    let dir = pose.rotation * direction(inc, az);
+    let true_range = surface
+        .cast(pose.translation.vector, dir, preset.max_range_m)
+        .filter(|&r| r < preset.max_range_m);
+    let measured = true_range.map(|r| r + preset.range_noise_per_m * r * standard_normal(rng));
+    SimRay {
+        ring: ring as u16,
+        column: column as u16,
+        inclination_rad: inc,
+        azimuth_rad: az,
+        true_range_m: true_range,
+        measured_range_m: measured,
+        time_offset_s: 0.0,
+    }
 }
 
 /// Casts every ray of `preset` from `pose` (sensor frame in the map frame) and adds range noise
@@ -135,23 +221,10 @@ pub fn simulate_scan<S: Surface + ?Sized, R: Rng>(
     preset: &ScannerPreset,
     rng: &mut R,
 ) -> Vec<SimRay> {
-    let origin = pose.translation.vector;
     let mut rays = Vec::with_capacity(preset.ray_count());
     for (ring, &inc) in preset.inclinations_rad.iter().enumerate() {
         for (column, &az) in preset.azimuths_rad.iter().enumerate() {
-            let dir = pose.rotation * direction(inc, az);
-            let true_range = surface
-                .cast(origin, dir, preset.max_range_m)
-                .filter(|&r| r < preset.max_range_m);
-            let measured = true_range.map(|r| r + preset.range_noise_per_m * r * standard_normal(rng));
-            rays.push(SimRay {
-                ring: ring as u16,
-                column: column as u16,
-                inclination_rad: inc,
-                azimuth_rad: az,
-                true_range_m: true_range,
-                measured_range_m: measured,
-            });
+            rays.push(cast_one(surface, pose, preset, ring, column, inc, az, rng));
         }
     }
     rays

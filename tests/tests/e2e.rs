@@ -138,3 +138,68 @@ fn online_hyperparameters_are_learned_off_the_ingest_path() -> anyhow::Result<()
     assert!(inside, "learned {learned:?} from {start:?}");
     Ok(())
 }
+
+#[test]
+fn a_sweep_taken_while_driving_and_turning_is_deskewed_and_a_nonsense_twist_is_refused() -> anyhow::Result<()>
+{
+    use rand::SeedableRng;
+    use rangegp_lab::eval::world::issue_motion;
+    use rangegp_lab::scangen::{to_message, with_motion};
+    use rangegp_proto::scan::ScanHeader;
+    use rangegp_sim::{simulate_sweep, ScannerPreset};
+
+    let h = Harness::start(|_| {})?;
+    let mut publisher = h.publisher(4)?;
+    let w = world(7, 2);
+    let preset = ScannerPreset::vlp16();
+    let pose = w.path.pose(&w.terrain, 0, preset.mount_height_m);
+    let motion = issue_motion();
+    let rays = simulate_sweep(
+        &w.terrain,
+        &pose,
+        &preset,
+        &motion,
+        &mut rand_pcg::Pcg64::seed_from_u64(1),
+    );
+    let (header, points) = to_message(&preset, &pose, &rays, now_ns());
+    assert!(
+        points.iter().any(|p| p.time_offset_ns > 90_000_000),
+        "the sweep's last columns fire late"
+    );
+    let header = with_motion(header, &motion);
+    let before = h.client.status()?.scans_accepted;
+    publisher.publish(header, &points)?;
+    h.wait_status("the sweep fitted", |s| s.scans_accepted > before)?;
+
+    // All around the sensor, 3–12 m, where the sweep's start and end meet too.
+    let s = pose.translation.vector;
+    let points_xy: Vec<[f64; 2]> = (0..72)
+        .map(|k| {
+            let (az, rho) = ((5.0 * k as f64).to_radians(), 3.0 + (k % 10) as f64);
+            [s.x + rho * az.cos(), s.y + rho * az.sin()]
+        })
+        .collect();
+    let items = h.client.elevation(&points_xy)?;
+    let errors: Vec<f64> = points_xy
+        .iter()
+        .zip(&items)
+        .filter_map(|(p, item)| Some(item.z_m? - w.terrain.height(p[0], p[1])?))
+        .collect();
+    assert!(errors.len() >= 50, "only {} of 72 answered", errors.len());
+    let e = rms(&errors);
+    assert!(e < 0.05, "elevation RMSE {e}");
+
+    // A twist no sensor has: refused and counted under its own reason.
+    let bad = ScanHeader {
+        wz_radps: f64::NAN,
+        ..header
+    };
+    publisher.publish(bad, &points)?;
+    let status = h.wait_status("invalid_motion counted", |s| {
+        s.rejections
+            .iter()
+            .any(|r| r.reason == "invalid_motion" && r.count == 1)
+    })?;
+    assert_eq!(status.scans_accepted, before + 1);
+    Ok(())
+}

@@ -10,7 +10,7 @@ fn main() -> Result<()> {
     // The experiments outside `all` write (and name) their own report instead.
     if !matches!(
         opts.experiment,
-        Experiment::Calibration | Experiment::View | Experiment::Sitemap
+        Experiment::Calibration | Experiment::View | Experiment::Sitemap | Experiment::World
     ) {
         println!("\n  written: {}", opts.out.join("summary.json").display());
     }

@@ -12,6 +12,7 @@ pub mod scores;
 pub mod sitemap;
 pub mod split;
 pub mod view;
+pub mod world;
 
 use aggregate::{print_aggregate, run_aggregate, AggregateOptions, AggregateReport};
 use anyhow::Result;
@@ -41,6 +42,9 @@ pub enum Experiment {
     /// A drive of over 1 km with the daemon in this process and its site map (not in `all`):
     /// writes sitemap.json.
     Sitemap,
+    /// A map that follows the world (not in `all`; built so far: motion deskew): writes
+    /// world.json.
+    World,
 }
 
 /// Command line of `rangegp-eval`.
@@ -137,6 +141,16 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
     }
     if opts.experiment == Experiment::View {
         return run_view_experiment(opts);
+    }
+    if opts.experiment == Experiment::World {
+        let report = world::run_world(&world::WorldOptions {
+            quick: opts.quick,
+            seed: opts.seed,
+            config: daemon_config(opts)?,
+        })?;
+        world::print_world(&report);
+        let failures = report.failures.clone();
+        return write_report(opts, "world.json", &report, failures);
     }
     if opts.experiment == Experiment::Sitemap {
         let report = sitemap::run_sitemap(&sitemap::SitemapOptions {

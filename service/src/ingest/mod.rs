@@ -1,6 +1,7 @@
 //! Scan intake: the iceoryx2 subscriber thread, validation, sequence and pose bookkeeping, and
 //! the queue to the fitter.
 
+pub mod deskew;
 pub mod plausibility;
 pub mod queue;
 pub mod sequence;

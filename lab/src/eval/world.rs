@@ -1,0 +1,190 @@
+//! `rangegp-eval world` (issue 17): a map that follows the world. Built so far: motion deskew.
+//!
+//! A rotating lidar's columns fire over 100 ms while the robot drives 1 m/s and turns 30°/s. Each
+//! scan is mapped three ways through the daemon's own validation and fit: deskewed (the header
+//! carries the twist, each point its firing time), not deskewed (the same sweep with the twist
+//! zeroed: the daemon takes every ray as fired at the stamp), and a static scan from the
+//! stamp's pose (every ray at one instant: the bound deskew can reach). Elevations at the same
+//! points, answered by all three, are scored against the terrain.
+
+use super::progress;
+use crate::scangen::{to_message, with_motion};
+use anyhow::Result;
+use nalgebra::{Isometry3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use rangegp_service::config::Config;
+use rangegp_service::ingest::validate::{validate, ValidationLimits};
+use rangegp_service::map::LocalRangeMap;
+use rangegp_sim::family::FAMILY_SIZE_M;
+use rangegp_sim::{family, simulate_scan, simulate_sweep, Heightmap, Path, ScannerPreset, SweepMotion};
+use serde::Serialize;
+
+/// Settings of the world evaluation.
+#[derive(Debug, Clone)]
+pub struct WorldOptions {
+    /// Reduced sizes for CI.
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+    /// Daemon configuration to map with.
+    pub config: Config,
+}
+
+/// What `world.json` holds (the parts of issue 17 built so far).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct WorldReport {
+    /// Quick (CI) or full sizes.
+    pub quick: bool,
+    /// Elevation RMSE of deskewed sweeps, metres.
+    pub deskew_rmse: f64,
+    /// Elevation RMSE of the same sweeps taken as if fired at the stamp, metres.
+    pub no_deskew_rmse: f64,
+    /// Elevation RMSE of static scans from the stamps' poses, metres.
+    pub static_rmse: f64,
+    /// Points scored (answered by all three maps).
+    pub points: usize,
+    /// Per terrain: (deskew, no deskew, static) RMSE, metres.
+    pub cases: Vec<(String, [f64; 3])>,
+    /// Bars missed.
+    pub failures: Vec<String>,
+}
+
+/// The sweep of the issue: 100 ms, 1 m/s forward, 30°/s to the left.
+pub fn issue_motion() -> SweepMotion {
+    SweepMotion {
+        sweep_s: 0.1,
+        linear_mps: Vector3::new(1.0, 0.0, 0.0),
+        angular_radps: Vector3::new(0.0, 0.0, 30f64.to_radians()),
+    }
+}
+
+/// `deskew_rmse` may exceed `static_rmse` by this factor at most (the issue's bar).
+pub const DESKEW_OVER_STATIC_MAX: f64 = 1.1;
+
+/// Runs the deskew evaluation.
+pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
+    let names: &[&str] = if opts.quick {
+        &["craters", "fbm-h05-16deg"]
+    } else {
+        &[
+            "craters",
+            "fbm-h05-8deg",
+            "fbm-h05-16deg",
+            "fbm-h08-30deg",
+            "boulders",
+            "terraces",
+        ]
+    };
+    let preset = ScannerPreset::os1_64(if opts.quick { 512 } else { 1024 });
+    let scans = if opts.quick { 3 } else { 8 };
+    let motion = issue_motion();
+    let params = opts.config.map_params();
+    let limits = ValidationLimits {
+        max_points: opts.config.ingest.max_points,
+        max_future_ns: u64::MAX,
+    };
+    let mut report = WorldReport {
+        quick: opts.quick,
+        ..WorldReport::default()
+    };
+    let mut total = [0.0f64; 3];
+    let bar = progress::bar((names.len() * scans) as u64, "  deskew scans");
+    for spec in family().into_iter().filter(|t| names.contains(&t.name.as_str())) {
+        let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
+        let path = Path::wander(opts.seed ^ 0xd35, &terrain, scans, 3.0, 0.25);
+        let mut sums = [0.0f64; 3];
+        let mut n = 0usize;
+        for i in 0..scans {
+            let pose = path.pose(&terrain, i, preset.mount_height_m);
+            let seed = opts.seed ^ ((i as u64) << 24) ^ 0xde5;
+            let maps = three_maps(&terrain, &pose, &preset, &motion, seed, &limits, &params)?;
+            let mut rng = Pcg64::seed_from_u64(seed ^ 0x9e57);
+            for _ in 0..400 {
+                let r = rng.random_range(2.0f64..20.0);
+                let a = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                let (x, y) = (pose.translation.x + r * a.cos(), pose.translation.y + r * a.sin());
+                let Some(truth) = terrain.height(x, y) else {
+                    continue;
+                };
+                let z: Vec<Option<f64>> = maps.iter().map(|m| m.elevation(x, y).map(|e| e.z)).collect();
+                if let [Some(a), Some(b), Some(c)] = z[..] {
+                    for (s, v) in sums.iter_mut().zip([a, b, c]) {
+                        *s += (v - truth).powi(2);
+                    }
+                    n += 1;
+                }
+            }
+            bar.inc(1);
+        }
+        let rmse = sums.map(|s| (s / n.max(1) as f64).sqrt());
+        report.cases.push((spec.name.clone(), rmse));
+        for (t, s) in total.iter_mut().zip(sums) {
+            *t += s;
+        }
+        report.points += n;
+    }
+    bar.finish_and_clear();
+    let pooled = total.map(|s| (s / report.points.max(1) as f64).sqrt());
+    [report.deskew_rmse, report.no_deskew_rmse, report.static_rmse] = pooled;
+    if report.points == 0 {
+        report
+            .failures
+            .push("no point was answered by all three maps".into());
+    } else if report.deskew_rmse > DESKEW_OVER_STATIC_MAX * report.static_rmse {
+        report.failures.push(format!(
+            "deskew RMSE {:.4} m > {DESKEW_OVER_STATIC_MAX} × static {:.4} m",
+            report.deskew_rmse, report.static_rmse
+        ));
+    }
+    Ok(report)
+}
+
+/// The deskewed, the not-deskewed and the static map of one pose.
+fn three_maps(
+    terrain: &Heightmap,
+    pose: &Isometry3<f64>,
+    preset: &ScannerPreset,
+    motion: &SweepMotion,
+    seed: u64,
+    limits: &ValidationLimits,
+    params: &rangegp_service::map::local::MapParams,
+) -> Result<[LocalRangeMap; 3]> {
+    let mut rng = Pcg64::seed_from_u64(seed);
+    let sweep = simulate_sweep(terrain, pose, preset, motion, &mut rng);
+    let still = simulate_scan(terrain, pose, preset, &mut rng);
+    let (unaware, points) = to_message(preset, pose, &sweep, 1_000);
+    let moving = with_motion(unaware, motion);
+    let (static_header, static_points) = to_message(preset, pose, &still, 1_000);
+    let fit = |h: &rangegp_proto::scan::ScanHeader,
+               p: &[rangegp_proto::scan::ScanPoint]|
+     -> Result<LocalRangeMap> {
+        let input =
+            validate(h, p, limits, 0).map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
+        Ok(LocalRangeMap::fit(&input, params)?)
+    };
+    Ok([
+        fit(&moving, &points)?,
+        fit(&unaware, &points)?,
+        fit(&static_header, &static_points)?,
+    ])
+}
+
+/// Prints the report.
+pub fn print_world(r: &WorldReport) {
+    println!(
+        "\nMotion deskew: OS1-64 sweeping over 100 ms at 1 m/s and 30°/s ({} points)",
+        r.points
+    );
+    println!(
+        "  {:16} {:>12} {:>14} {:>10}",
+        "terrain", "deskewed", "not deskewed", "static"
+    );
+    for (name, [d, n, s]) in &r.cases {
+        println!("  {name:16} {d:>10.4} m {n:>12.4} m {s:>8.4} m");
+    }
+    println!(
+        "  {:16} {:>10.4} m {:>12.4} m {:>8.4} m",
+        "pooled", r.deskew_rmse, r.no_deskew_rmse, r.static_rmse
+    );
+}
