@@ -106,7 +106,7 @@ pub struct ScanPoint {
     pub range_m: f32,
     /// Polar angle from the sensor's +z axis, radians, in [0, π].
     pub inclination_rad: f32,
-    /// Azimuth `atan2(y, x)` in the sensor frame, radians, in [−π, π].
+    /// Azimuth `atan2(y, x)` in the sensor frame, radians, in [−π, π] or in [0, 2π).
     pub azimuth_rad: f32,
     /// Laser ring index (valid with [`FLAG_RING_COLUMN_VALID`]).
     pub ring: u16,

@@ -47,7 +47,7 @@ pub enum RejectReason {
     Truncated,
     /// A returned ray has a non-finite or negative range.
     InvalidRange,
-    /// A ray's angles are non-finite or out of [0, π] × [−π, π].
+    /// A ray's angles are non-finite or out of [0, π] × [−π, 2π).
     InvalidAngle,
     /// A point sets unknown flag bits or a non-zero reserved field.
     InvalidFlags,

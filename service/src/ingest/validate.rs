@@ -98,9 +98,16 @@ pub fn validate(
         }
         let (inc, az) = (p.inclination_rad as f64, p.azimuth_rad as f64);
         let pi = std::f64::consts::PI + 1e-6;
-        if !inc.is_finite() || !az.is_finite() || !(0.0..=pi).contains(&inc) || az.abs() > pi {
+        // Azimuths in [−π, π] or, as many drivers count them, in [0, 2π).
+        if !inc.is_finite() || !az.is_finite() || !(0.0..=pi).contains(&inc) || !(-pi..2.0 * pi).contains(&az)
+        {
             return Err(RejectReason::InvalidAngle);
         }
+        let az = if az > std::f64::consts::PI {
+            az - std::f64::consts::TAU
+        } else {
+            az
+        };
         if !p.has_return() {
             continue;
         }
@@ -308,6 +315,22 @@ pub(crate) mod tests {
         assert!((turned - 0.05).abs() < 1e-6, "{turned}");
         assert!((scan.rays[1].range - still.rays[1].range).abs() < 1e-12);
         assert_eq!(scan.rays[0], still.rays[0], "a ray fired at the stamp stays put");
+    }
+
+    #[test]
+    fn azimuths_counted_from_0_to_2pi_are_taken_as_from_minus_pi_to_pi() {
+        let mut pts = good_points(3);
+        pts[0].azimuth_rad = 1.5 * std::f32::consts::PI;
+        pts[1].azimuth_rad = 0.25;
+        pts[2].azimuth_rad = 6.3;
+        let scan = validate(&good_header(2), &pts, &limits(), NOW).expect("valid");
+        assert!((scan.rays[0].azimuth + 0.5 * std::f64::consts::PI).abs() < 1e-6);
+        assert_eq!(scan.rays[1].azimuth, 0.25f32 as f64);
+        // Past 2π is no convention: refused.
+        assert_eq!(
+            validate(&good_header(3), &pts, &limits(), NOW),
+            Err(RejectReason::InvalidAngle)
+        );
     }
 
     #[test]
