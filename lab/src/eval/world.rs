@@ -44,6 +44,11 @@ pub struct WorldReport {
     pub static_rmse: f64,
     /// Points scored (answered by all three maps).
     pub points: usize,
+    /// The same three RMSEs over the points within 15° of the seam behind the sensor, where the
+    /// sweep's last columns meet its first (deskewed, not deskewed, static), metres.
+    pub seam_rmse: [f64; 3],
+    /// Points scored at the seam.
+    pub seam_points: usize,
     /// Per terrain: (deskew, no deskew, static) RMSE, metres.
     pub cases: Vec<(String, [f64; 3])>,
     /// Bars missed.
@@ -58,6 +63,9 @@ pub fn issue_motion() -> SweepMotion {
         angular_radps: Vector3::new(0.0, 0.0, 30f64.to_radians()),
     }
 }
+
+/// Points whose bearing in the sensor frame is beyond this (radians, 165°) lie at the seam.
+const SEAM_FROM_RAD: f64 = 165.0 * std::f64::consts::PI / 180.0;
 
 /// `deskew_rmse` may exceed `static_rmse` by this factor at most (the issue's bar).
 pub const DESKEW_OVER_STATIC_MAX: f64 = 1.1;
@@ -89,6 +97,7 @@ pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
         ..WorldReport::default()
     };
     let mut total = [0.0f64; 3];
+    let (mut seam, mut seam_n) = ([0.0f64; 3], 0usize);
     let bar = progress::bar((names.len() * scans) as u64, "  deskew scans");
     for spec in family().into_iter().filter(|t| names.contains(&t.name.as_str())) {
         let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
@@ -104,6 +113,12 @@ pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
                 let r = rng.random_range(2.0f64..20.0);
                 let a = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
                 let (x, y) = (pose.translation.x + r * a.cos(), pose.translation.y + r * a.sin());
+                let local = pose.inverse_transform_vector(&Vector3::new(
+                    x - pose.translation.x,
+                    y - pose.translation.y,
+                    0.0,
+                ));
+                let at_seam = local.y.atan2(local.x).abs() > SEAM_FROM_RAD;
                 let Some(truth) = terrain.height(x, y) else {
                     continue;
                 };
@@ -113,6 +128,12 @@ pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
                         *s += (v - truth).powi(2);
                     }
                     n += 1;
+                    if at_seam {
+                        for (s, v) in seam.iter_mut().zip([a, b, c]) {
+                            *s += (v - truth).powi(2);
+                        }
+                        seam_n += 1;
+                    }
                 }
             }
             bar.inc(1);
@@ -126,6 +147,8 @@ pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
     }
     bar.finish_and_clear();
     let pooled = total.map(|s| (s / report.points.max(1) as f64).sqrt());
+    report.seam_rmse = seam.map(|s| (s / seam_n.max(1) as f64).sqrt());
+    report.seam_points = seam_n;
     [report.deskew_rmse, report.no_deskew_rmse, report.static_rmse] = pooled;
     if report.points == 0 {
         report
@@ -186,5 +209,10 @@ pub fn print_world(r: &WorldReport) {
     println!(
         "  {:16} {:>10.4} m {:>12.4} m {:>8.4} m",
         "pooled", r.deskew_rmse, r.no_deskew_rmse, r.static_rmse
+    );
+    let [d, n, s] = r.seam_rmse;
+    println!(
+        "  {:16} {d:>10.4} m {n:>12.4} m {s:>8.4} m  ({} points within 15° of the sweep's seam)",
+        "seam", r.seam_points
     );
 }
