@@ -5,16 +5,13 @@
 //! self-calibration brought them (`quick_regressions`; the matrix without the prequential
 //! calibration fails it, as the second test checks).
 
-use rangegp_lab::eval::calibration::{quick_regressions, run_calibration, CalibrationOptions, BANDS};
+use rangegp_lab::eval::calibration::{quick_regressions, run_calibration, BANDS};
+use rangegp_lab::eval::FamilyOptions;
 use rangegp_service::config::Config;
 
 #[test]
 fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
-    let report = run_calibration(&CalibrationOptions {
-        quick: true,
-        seed: 0,
-        config: Config::default(),
-    })?;
+    let report = run_calibration(&FamilyOptions::quick())?;
     let json = serde_json::to_value(&report)?;
     for key in [
         "terrain",
@@ -63,10 +60,9 @@ fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
 fn the_guard_fails_without_the_prequential_calibration() -> anyhow::Result<()> {
     let mut config = Config::default();
     config.gp.prequential_calibration = false;
-    let report = run_calibration(&CalibrationOptions {
-        quick: true,
-        seed: 0,
+    let report = run_calibration(&FamilyOptions {
         config,
+        ..FamilyOptions::quick()
     })?;
     let regressions = quick_regressions(&report);
     anyhow::ensure!(

@@ -12,12 +12,12 @@
 
 use super::drive::{map_drive, Drive, MappedDrive};
 use super::scores::{Sample, Scores};
+use super::FamilyOptions;
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
-use rangegp_service::config::Config;
 use rangegp_service::map::local::normal_quantile;
 use rangegp_service::map::query;
 use rangegp_sim::family::FAMILY_SIZE_M;
@@ -132,17 +132,6 @@ fn reliability(samples: &[Sample]) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// Sizes and settings of a run.
-#[derive(Debug, Clone)]
-pub struct CalibrationOptions {
-    /// Reduced sizes (CI).
-    pub quick: bool,
-    /// World seed.
-    pub seed: u64,
-    /// The daemon configuration whose map and aggregate settings are used.
-    pub config: Config,
-}
-
 /// One cell of the calibration matrix.
 #[derive(Debug, Clone, Serialize)]
 pub struct Cell {
@@ -223,7 +212,7 @@ struct Bin {
 }
 
 /// Runs the matrix.
-pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
+pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
     let terrains: Vec<TerrainSpec> = if opts.quick {
         family()
             .into_iter()
@@ -302,7 +291,7 @@ pub fn run_calibration(opts: &CalibrationOptions) -> Result<CalibrationReport> {
 fn run_one(
     terrain: &Heightmap,
     preset: &ScannerPreset,
-    opts: &CalibrationOptions,
+    opts: &FamilyOptions,
 ) -> Result<BTreeMap<(&'static str, &'static str), Bin>> {
     let seed = opts.seed;
     let MappedDrive { poses, snapshot, .. } = map_drive(

@@ -18,6 +18,7 @@ use aggregate::{print_aggregate, run_aggregate, AggregateOptions, AggregateRepor
 use anyhow::Result;
 use local::{print_local, run_local, LocalOptions, LocalReport};
 use overhang::{print_overhang, run_overhang, OverhangOptions, OverhangReport};
+use rangegp_service::config::Config;
 use rangegp_sim::{CraterParams, Heightmap};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -143,11 +144,7 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
         return run_view_experiment(opts);
     }
     if opts.experiment == Experiment::World {
-        let report = world::run_world(&world::WorldOptions {
-            quick: opts.quick,
-            seed: opts.seed,
-            config: daemon_config(opts)?,
-        })?;
+        let report = world::run_world(&FamilyOptions::of(opts)?)?;
         world::print_world(&report);
         let failures = report.failures.clone();
         return write_report(opts, "world.json", &report, failures);
@@ -247,21 +244,44 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
     Ok(summary)
 }
 
-/// The daemon configuration an experiment maps with (`--config`, else the embedded defaults).
-fn daemon_config(opts: &EvalOptions) -> Result<rangegp_service::config::Config> {
-    Ok(match &opts.config {
-        Some(path) => rangegp_service::config::Config::load(path)?,
-        None => rangegp_service::config::Config::default(),
-    })
+/// How an evaluation over the sim family runs: its sizes, seed and the daemon configuration it
+/// maps with (calibration, view and world).
+#[derive(Debug, Clone)]
+pub struct FamilyOptions {
+    /// Reduced sizes (CI).
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+    /// The daemon configuration whose map, calibration and aggregate settings are used.
+    pub config: Config,
+}
+
+impl FamilyOptions {
+    /// The CI form: quick sizes, seed 0, the embedded defaults.
+    pub fn quick() -> Self {
+        Self {
+            quick: true,
+            seed: 0,
+            config: Config::default(),
+        }
+    }
+
+    /// From the command line (`--config`, else the embedded defaults).
+    fn of(opts: &EvalOptions) -> Result<Self> {
+        Ok(Self {
+            quick: opts.quick,
+            seed: opts.seed,
+            config: match &opts.config {
+                Some(path) => Config::load(path)?,
+                None => Config::default(),
+            },
+        })
+    }
 }
 
 /// `rangegp-eval view`: rays over evicted ground, printed and written to view.json.
 fn run_view_experiment(opts: &EvalOptions) -> Result<Summary> {
-    let report = view::run_view(&view::ViewOptions {
-        quick: opts.quick,
-        seed: opts.seed,
-        config: daemon_config(opts)?,
-    })?;
+    let report = view::run_view(&FamilyOptions::of(opts)?)?;
     view::print_view(&report);
     let failures = report.failures.clone();
     write_report(opts, "view.json", &report, failures)
@@ -269,11 +289,7 @@ fn run_view_experiment(opts: &EvalOptions) -> Result<Summary> {
 
 /// `rangegp-eval calibration`: the σ matrix, printed and written to calibration.json.
 fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
-    let report = calibration::run_calibration(&calibration::CalibrationOptions {
-        quick: opts.quick,
-        seed: opts.seed,
-        config: daemon_config(opts)?,
-    })?;
+    let report = calibration::run_calibration(&FamilyOptions::of(opts)?)?;
     calibration::print_calibration(&report);
     if report.failures.is_empty() {
         println!("\nEvery cell with n ≥ {} calibrated.", calibration::MIN_CELL_N);

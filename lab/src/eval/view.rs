@@ -9,26 +9,15 @@
 
 use super::calibration::Coverage;
 use super::drive::{map_drive, Drive, MappedDrive};
+use super::FamilyOptions;
 use anyhow::Result;
 use nalgebra::{UnitQuaternion, Vector3};
 use rangegp_proto::msg::{Provenance, Ray, Source};
-use rangegp_service::config::Config;
 use rangegp_service::map::query;
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::collections::BTreeMap;
-
-/// Settings of the view evaluation.
-#[derive(Debug, Clone)]
-pub struct ViewOptions {
-    /// Reduced sizes for CI.
-    pub quick: bool,
-    /// World seed.
-    pub seed: u64,
-    /// Daemon configuration to map with.
-    pub config: Config,
-}
 
 /// What `view.json` holds.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -82,7 +71,7 @@ impl Area {
 }
 
 /// Runs the evaluation.
-pub fn run_view(opts: &ViewOptions) -> Result<ViewReport> {
+pub fn run_view(opts: &FamilyOptions) -> Result<ViewReport> {
     let terrains: Vec<_> = family()
         .into_iter()
         .filter(|t| !opts.quick || ["craters", "fbm-h05-16deg"].contains(&t.name.as_str()))
@@ -233,7 +222,7 @@ struct Case {
     rays: Vec<ScoredRay>,
 }
 
-fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &ViewOptions) -> Result<Case> {
+fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &FamilyOptions) -> Result<Case> {
     let capacity = opts.config.window.capacity;
     let scans = capacity + if opts.quick { 12 } else { 24 };
     let seed = opts.seed;

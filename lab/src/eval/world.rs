@@ -7,29 +7,17 @@
 //! stamp's pose (every ray at one instant: the bound deskew can reach). Elevations at the same
 //! points, answered by all three, are scored against the terrain.
 
-use super::progress;
+use super::{progress, FamilyOptions};
 use crate::scangen::{to_message, with_motion};
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use rangegp_service::config::Config;
 use rangegp_service::ingest::validate::{validate, ValidationLimits};
 use rangegp_service::map::LocalRangeMap;
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, simulate_scan, simulate_sweep, Heightmap, Path, ScannerPreset, SweepMotion};
 use serde::Serialize;
-
-/// Settings of the world evaluation.
-#[derive(Debug, Clone)]
-pub struct WorldOptions {
-    /// Reduced sizes for CI.
-    pub quick: bool,
-    /// World seed.
-    pub seed: u64,
-    /// Daemon configuration to map with.
-    pub config: Config,
-}
 
 /// What `world.json` holds (the parts of issue 17 built so far).
 #[derive(Debug, Clone, Default, Serialize)]
@@ -71,7 +59,7 @@ const SEAM_FROM_RAD: f64 = 165.0 * std::f64::consts::PI / 180.0;
 pub const DESKEW_OVER_STATIC_MAX: f64 = 1.1;
 
 /// Runs the deskew evaluation.
-pub fn run_world(opts: &WorldOptions) -> Result<WorldReport> {
+pub fn run_world(opts: &FamilyOptions) -> Result<WorldReport> {
     let names: &[&str] = if opts.quick {
         &["craters", "fbm-h05-16deg"]
     } else {

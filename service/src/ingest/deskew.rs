@@ -12,7 +12,7 @@
 //! for a static scan; rotation only, 0.445 m. A ray left at its own origin is misplaced by at
 //! most the sweep's travel (|v| · sweep, 10 cm here), a height error of that times the slope.
 use crate::scan::RayObservation;
-use nalgebra::{Isometry3, Matrix3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{UnitQuaternion, Vector3};
 
 /// Fastest sensor motion accepted, m/s.
 pub const MAX_SPEED_MPS: f64 = 100.0;
@@ -44,13 +44,38 @@ impl Twist {
         self.linear == Vector3::zeros() && self.angular == Vector3::zeros()
     }
 
-    /// The sensor's pose `t` seconds after the stamp relative to its pose at the stamp (the
-    /// deskew uses its rotation; the translation is checked against the simulator): the
-    /// exponential of the twist on SE(3) (rotation by Rodrigues, translation through the left
-    /// Jacobian V of SO(3): Barfoot, "State Estimation for Robotics", eq. 7.86).
-    pub fn displacement(&self, t: f64) -> Isometry3<f64> {
-        let phi = self.angular * t;
-        let rho = self.linear * t;
+    /// How the sensor has turned `t` seconds after the stamp, relative to its orientation at
+    /// the stamp (the rotation of the twist's exponential on SE(3), by Rodrigues).
+    pub fn rotation(&self, t: f64) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_scaled_axis(self.angular * t)
+    }
+}
+
+/// A ray fired `t` seconds after the stamp, turned into the sensor's orientation at the stamp
+/// (same origin and range, see the module's note on translation).
+pub fn deskew(twist: &Twist, t: f64, ray: RayObservation) -> RayObservation {
+    let (s_i, c_i) = ray.inclination.sin_cos();
+    let (s_a, c_a) = ray.azimuth.sin_cos();
+    let direction = twist.rotation(t) * Vector3::new(s_i * c_a, s_i * s_a, c_i);
+    RayObservation {
+        inclination: direction.z.clamp(-1.0, 1.0).acos(),
+        azimuth: direction.y.atan2(direction.x),
+        range: ray.range,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Matrix3, Translation3};
+    use rangegp_sim::SweepMotion;
+
+    /// The whole of the sensor's motion `t` seconds after the stamp, with the deskew's rotation:
+    /// the exponential of the twist on SE(3), translation through the left Jacobian V of SO(3)
+    /// (Barfoot, "State Estimation for Robotics", eq. 7.86), to check against the simulator.
+    fn displacement(twist: &Twist, t: f64) -> Isometry3<f64> {
+        let phi = twist.angular * t;
+        let rho = twist.linear * t;
         let theta = phi.norm();
         let k = phi.cross_matrix();
         // (1 − cos θ) / θ² and (θ − sin θ) / θ³, by their series below 1e-4 rad.
@@ -61,29 +86,8 @@ impl Twist {
             ((1.0 - theta.cos()) / t2, (theta - theta.sin()) / (t2 * theta))
         };
         let v = Matrix3::identity() + k * a + k * k * b;
-        Isometry3::from_parts(Translation3::from(v * rho), UnitQuaternion::from_scaled_axis(phi))
+        Isometry3::from_parts(Translation3::from(v * rho), twist.rotation(t))
     }
-}
-
-/// A ray fired `t` seconds after the stamp, turned into the sensor's orientation at the stamp
-/// (same origin and range, see the module's note on translation).
-pub fn deskew(twist: &Twist, t: f64, ray: RayObservation) -> RayObservation {
-    let (s_i, c_i) = ray.inclination.sin_cos();
-    let (s_a, c_a) = ray.azimuth.sin_cos();
-    let at_firing = Vector3::new(s_i * c_a, s_i * s_a, c_i) * ray.range;
-    let p = twist.displacement(t).rotation * at_firing;
-    let range = p.norm();
-    RayObservation {
-        inclination: (p.z / range).clamp(-1.0, 1.0).acos(),
-        azimuth: p.y.atan2(p.x),
-        range,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use rangegp_sim::SweepMotion;
 
     #[test]
     fn the_closed_form_matches_the_simulators_integration() {
@@ -98,7 +102,7 @@ mod tests {
             angular_radps: angular,
         };
         for t in [0.0, 1e-6, 0.03, 0.1, 0.5] {
-            let (a, b) = (twist.displacement(t), sim.displacement(t));
+            let (a, b) = (displacement(&twist, t), sim.displacement(t));
             let dt = (a.translation.vector - b.translation.vector).norm();
             let dr = a.rotation.angle_to(&b.rotation);
             // The simulator's own bound on its integration error, with room.

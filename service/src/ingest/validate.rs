@@ -121,15 +121,11 @@ pub fn validate(
                 azimuth: az,
                 range: r,
             };
-            let ray = if moving && p.time_offset_ns > 0 {
+            rays.push(if moving && p.time_offset_ns > 0 {
                 deskew(&twist, p.time_offset_ns as f64 * 1e-9, ray)
             } else {
                 ray
-            };
-            // A return at the edge of the range, moved by the deskew, may now lie beyond it.
-            if ray.range > 0.0 && ray.range < h.max_range_m {
-                rays.push(ray);
-            }
+            });
         }
     }
     if rays.is_empty() {

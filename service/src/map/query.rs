@@ -247,37 +247,40 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         let factor = |p: &Vector3<f64>| sd_factor(snapshot, Source::Aggregate, p);
         a.cast(origin, dir, ray.max_range_m, &factor)
     });
-    let calibrated = |a: RayEstimate, source: Source| (a, source, a.range.and(a.range_var));
     let window_miss = answers
         .iter()
         .max_by(|a, b| a.hit_probability.total_cmp(&b.hit_probability));
+    // Each hit's range variance is calibrated already (the casts took the σ factor).
     let answer = match (window_hit, aggregate) {
         (Some(w), Some(a)) if a.range.is_some() => {
-            let (w, a) = (calibrated(*w, Source::Window), calibrated(a, Source::Aggregate));
-            Some(if a.2.unwrap_or(f64::INFINITY) < w.2.unwrap_or(f64::INFINITY) {
-                a
+            let var = |e: &RayEstimate| e.range_var.unwrap_or(f64::INFINITY);
+            Some(if var(&a) < var(w) {
+                (a, Source::Aggregate)
             } else {
-                w
+                (*w, Source::Window)
             })
         }
-        (Some(w), _) => Some(calibrated(*w, Source::Window)),
-        (None, Some(a)) if a.range.is_some() => Some(calibrated(a, Source::Aggregate)),
+        (Some(w), _) => Some((*w, Source::Window)),
+        (None, Some(a)) if a.range.is_some() => Some((a, Source::Aggregate)),
         (None, aggregate) => match (window_miss, aggregate) {
-            (Some(w), _) => Some((*w, Source::Window, None)),
-            (None, Some(a)) => Some((a, Source::Aggregate, None)),
+            (Some(w), _) => Some((*w, Source::Window)),
+            (None, Some(a)) => Some((a, Source::Aggregate)),
             (None, None) => None,
         },
     };
     match answer {
-        Some((a, source, range_var)) => RayItem {
-            range_m: a.range,
-            range_var_m2: range_var,
-            hit_probability: Some(a.hit_probability),
-            hit_point_m: a.range.map(|t| (origin + dir * t).into()),
-            hit_sigma_m: range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
-            source,
-            provenance: a.provenance,
-        },
+        Some((a, source)) => {
+            let range_var = a.range.and(a.range_var);
+            RayItem {
+                range_m: a.range,
+                range_var_m2: range_var,
+                hit_probability: Some(a.hit_probability),
+                hit_point_m: a.range.map(|t| (origin + dir * t).into()),
+                hit_sigma_m: range_var.map(|v| (dir.abs() * v.max(0.0).sqrt()).into()),
+                source,
+                provenance: a.provenance,
+            }
+        }
         None => RayItem {
             range_m: None,
             range_var_m2: None,

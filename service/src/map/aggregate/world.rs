@@ -544,17 +544,18 @@ impl WorldAggregate {
                 provenance,
             });
         }
-        let closest = (0..=samples)
+        // The closest approach by the tiles' own σ; the calibration's factor is asked once, there.
+        let (closest, at) = (0..=samples)
             .filter_map(|k| {
                 let p = point(max_range * k as f64 / samples as f64);
                 self.elevation(p.x, p.y)
-                    .map(|e| (e.z - p.z) / (sd_factor(&p) * e.var.sqrt()).max(1e-12))
+                    .map(|e| ((e.z - p.z) / e.var.sqrt().max(1e-12), p))
             })
-            .reduce(f64::max)?;
+            .max_by(|a, b| a.0.total_cmp(&b.0))?;
         Some(RayEstimate {
             range: None,
             range_var: None,
-            hit_probability: normal_cdf(closest),
+            hit_probability: normal_cdf(closest / sd_factor(&at)),
             provenance: Provenance::None,
         })
     }
