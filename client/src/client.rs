@@ -239,6 +239,19 @@ impl Client {
         Ok(rep)
     }
 
+    /// Corrects the poses of past scans (a loop closure, a relocalisation): the window's maps
+    /// and the aggregate move; the reply comes once queries see the corrected map. Give the
+    /// client a timeout of a few seconds: a correction over a long trajectory takes up to ~1 s.
+    pub fn correct(&self, corrections: &[PoseCorrection]) -> Result<CorrectionReply, ClientError> {
+        self.call(
+            &self.keys.corrections(),
+            &CorrectionRequest {
+                version: PROTOCOL_VERSION,
+                corrections: corrections.to_vec(),
+            },
+        )
+    }
+
     /// The daemon's counters.
     pub fn status(&self) -> Result<StatusReply, ClientError> {
         self.call(

@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 6
+PROTOCOL_VERSION = 7
 
 
 def main() -> int:

@@ -249,6 +249,10 @@ pub struct AggregateConfig {
     /// Share of one core the aggregate may spend fusing, in (0, 1]: each scan is fused out to
     /// the reach this allows at the sensor's rate (all of 10 m when it can; 3 m at least).
     pub cpu_share: f64,
+    /// Memory for the ledger of each fused scan's cells, MiB: what a pose correction moves. A
+    /// scan takes 8 bytes per cell of the square its reach spans (a 6 m reach: 18 KiB); the
+    /// oldest leave first, and a correction naming a forgotten scan counts it not correctable.
+    pub ledger_mib: usize,
 }
 
 impl Default for AggregateConfig {
@@ -258,6 +262,7 @@ impl Default for AggregateConfig {
             queue_len: 64,
             radius_m: 30.0,
             cpu_share: 0.5,
+            ledger_mib: 128,
         }
     }
 }
@@ -420,7 +425,7 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 37] = [
+        let checks: [(bool, &'static str, &str); 38] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
@@ -538,6 +543,11 @@ impl Config {
                 a.cpu_share > 0.0 && a.cpu_share <= 1.0,
                 "aggregate.cpu_share",
                 "must be in (0, 1]",
+            ),
+            (
+                (1..=65_536).contains(&a.ledger_mib),
+                "aggregate.ledger_mib",
+                "must be 1 to 65536",
             ),
             (
                 positive(a.radius_m),

@@ -267,6 +267,24 @@ impl Collector for DaemonCollector {
             "Tile pages not written or not read",
             m.aggregate_page_failures.load(Relaxed),
         )?;
+        counter(
+            e,
+            "pose_corrections",
+            "Pose corrections applied",
+            m.corrections.load(Relaxed),
+        )?;
+        gauge(
+            e,
+            "aggregate_ledger_scans",
+            "Fused scans a pose correction can move",
+            m.ledger_scans.load(Relaxed) as f64,
+        )?;
+        gauge(
+            e,
+            "aggregate_ledger_bytes",
+            "Memory the ledger of fused scans holds",
+            m.ledger_bytes.load(Relaxed) as f64,
+        )?;
         gauge(
             e,
             "aggregate_reach_meters",

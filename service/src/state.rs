@@ -1,12 +1,16 @@
 //! The state every thread of the daemon shares, named for what it is.
 
 use crate::gp::Kernel;
+use crate::map::correction::{Correction, CorrectionLog};
 use crate::map::MapSnapshot;
 use crate::metrics::Metrics;
 use arc_swap::ArcSwap;
 use rangegp_proto::keys::MapKeys;
-use std::sync::Arc;
-use std::time::Duration;
+use rangegp_proto::msg::CorrectionReply;
+use std::collections::VecDeque;
+use std::sync::mpsc::SyncSender;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 /// The daemon's shared state: the maps queries see, counters, and the settings the query side
 /// and status need. The fitter and aggregate threads publish into it, the query server, the
@@ -35,4 +39,32 @@ pub struct DaemonState {
     pub aggregate_radius_m: Option<f64>,
     /// Longest wait of a batch query for a worker before it is answered `overloaded`.
     pub queue_deadline: Duration,
+    /// Pose corrections: applied so far, and waiting.
+    pub corrections: CorrectionDesk,
+}
+
+/// A correction waiting for the aggregate thread.
+#[derive(Debug)]
+pub struct CorrectionJob {
+    /// The validated correction.
+    pub correction: Arc<Correction>,
+    /// When its request arrived.
+    pub arrived: Instant,
+    /// Where the outcome goes (the query worker waiting to reply; an error says why nothing
+    /// changed).
+    pub reply: SyncSender<Result<CorrectionReply, String>>,
+}
+
+/// Corrections waiting at most; a request beyond is answered `overloaded`.
+pub const CORRECTIONS_WAITING: usize = 8;
+
+/// Pose corrections: the log every publisher of maps brings them up with, and the queue to the
+/// aggregate thread, which applies them (`None` without an aggregate: the window is corrected
+/// by the query worker itself).
+#[derive(Debug, Default)]
+pub struct CorrectionDesk {
+    /// Corrections applied (or being applied), numbered.
+    pub log: Mutex<CorrectionLog>,
+    /// Waiting for the aggregate thread.
+    pub waiting: Option<Mutex<VecDeque<CorrectionJob>>>,
 }

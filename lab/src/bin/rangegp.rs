@@ -8,7 +8,7 @@ use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::plot::{Heatmap, Raster};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
-use rangegp_proto::msg::{Camera, GridReply, Ray, Source, ViewReply, ViewRequest};
+use rangegp_proto::msg::{Camera, GridReply, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
@@ -67,6 +67,28 @@ enum Command {
         /// planner-1 and planner-2).
         #[arg(long, default_values_t = ["planner-1".to_owned()])]
         planner: Vec<String>,
+    },
+    /// Correct past scans' poses and print what moved as JSON: a loop closure moves every scan
+    /// taken since `--from-stamp-ns` by a rigid transform (`--transform`), or `--scan PUB SEQ`
+    /// sets one scan's pose (`--transform` is then that pose).
+    Correct {
+        #[command(flatten)]
+        connection: Connection,
+        /// The transform (or the scan's pose): X Y Z (metres) and yaw (degrees, about +z).
+        #[arg(long, num_args = 4, allow_negative_numbers = true, required = true)]
+        transform: Vec<f64>,
+        /// Move only scans taken at or after this stamp, ns since the Unix epoch.
+        #[arg(long, default_value_t = 0)]
+        from_stamp_ns: u64,
+        /// Move only scans taken at or before this stamp (default: every scan since `from`).
+        #[arg(long, default_value_t = u64::MAX)]
+        until_stamp_ns: u64,
+        /// Move only this publisher's scans.
+        #[arg(long)]
+        publisher: Option<u64>,
+        /// Set the pose of one scan, named by publisher id and sequence.
+        #[arg(long, num_args = 2, conflicts_with_all = ["from_stamp_ns", "until_stamp_ns", "publisher"])]
+        scan: Option<Vec<u64>>,
     },
     /// Run one query and print the reply as JSON.
     Query {
@@ -301,6 +323,35 @@ fn main() -> Result<()> {
             );
         }
         Command::Status(c) => println!("{}", serde_json::to_string_pretty(&c.open()?.status()?)?),
+        Command::Correct {
+            connection,
+            transform,
+            from_stamp_ns,
+            until_stamp_ns,
+            publisher,
+            scan,
+        } => {
+            let half = transform[3].to_radians() / 2.0;
+            let rigid = Rigid {
+                translation_m: [transform[0], transform[1], transform[2]],
+                rotation_xyzw: [0.0, 0.0, half.sin(), half.cos()],
+            };
+            let correction = match scan.as_deref() {
+                Some(&[publisher_id, sequence]) => PoseCorrection::Scan {
+                    publisher_id,
+                    sequence,
+                    pose: rigid,
+                },
+                _ => PoseCorrection::Transform {
+                    publisher_id: publisher,
+                    from_stamp_ns,
+                    until_stamp_ns,
+                    transform: rigid,
+                },
+            };
+            let reply = connection.open()?.correct(&[correction])?;
+            println!("{}", serde_json::to_string_pretty(&reply)?);
+        }
         Command::Query { connection, kind } => {
             let client = connection.open()?;
             let json = match kind {

@@ -2,8 +2,10 @@
 //! result. When it falls behind, the scans that waited meanwhile are fused together in one
 //! insert (each tile refitted once), so it catches up instead of dropping scans.
 
+use super::correct::{apply_waiting, AggregateGeneration};
 use super::AggregateFeed;
 use crate::checkpoint::PageStore;
+use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::{TilePage, WorldAggregate};
 use crate::map::aggregate::Aggregate;
 use crate::metrics::Metrics;
@@ -72,6 +74,15 @@ impl FusionBudget {
     }
 }
 
+/// What the aggregate thread keeps besides the map: the site map on disk (checkpoints on) and
+/// the ledger of each scan's cells (what a pose correction moves).
+pub(super) struct Kept {
+    /// Tiles beyond the radius, on disk.
+    pub pages: Option<PageStore>,
+    /// Each fused scan's cells, within a memory budget.
+    pub ledger: Ledger,
+}
+
 /// Folds every fitted scan from `feed` into the world aggregate, each out to the reach `budget`
 /// allows: each insert takes all the scans waiting (in order) into a copy of the published map (tiles are shared, so a copy costs
 /// the cells), evicts tiles beyond `radius_m` of the newest sensor (never by a scan far from
@@ -83,7 +94,7 @@ pub(super) fn aggregate_loop(
     mut world: Arc<WorldAggregate>,
     radius_m: f64,
     mut budget: FusionBudget,
-    mut pages: Option<PageStore>,
+    mut kept: Kept,
     shutdown: &Shutdown,
 ) {
     let m = &state.metrics;
@@ -103,7 +114,9 @@ pub(super) fn aggregate_loop(
         }
     };
     let mut last_start: Option<Instant> = None;
+    let mut generation = AggregateGeneration::default();
     while !shutdown.is_triggered() {
+        apply_waiting(state, &mut world, &mut kept, &mut generation, &pool);
         let batch = feed.drain_timeout(Duration::from_millis(50));
         let Some((newest, _)) = batch.last() else {
             continue;
@@ -120,20 +133,33 @@ pub(super) fn aggregate_loop(
         last_start = Some(started);
         let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
-        if let Some(store) = &pages {
+        if let Some(store) = &kept.pages {
             let s = newest.pose.translation.vector;
             page_in(store, &mut next, (s.x, s.y), radius_m, &pool, m);
         }
-        let scans: Vec<_> = batch.iter().map(|(scan, map)| (scan, map.as_ref())).collect();
+        // Maps fitted before a correction this aggregate reflects are moved by it first.
+        let maps = generation.bring_up(state, batch.iter().map(|(_, map)| map));
+        let scans: Vec<_> = batch
+            .iter()
+            .zip(&maps)
+            .map(|((scan, _), map)| (scan, map.as_ref()))
+            .collect();
         let n = batch.len() as u64;
         let inserted = pool.install(|| next.insert_all_and_evict(&scans, radius_m, reach_m));
         budget.observe(batch.len(), reach_m, started.elapsed(), since_last);
         m.aggregate_reach_mm
             .store((reach_m * 1e3) as u64, Ordering::Relaxed);
         match inserted {
-            Ok(evicted) => {
+            Ok(inserted) => {
+                for raster in inserted.fused {
+                    kept.ledger.push(raster);
+                }
+                m.ledger_scans.store(kept.ledger.len() as u64, Ordering::Relaxed);
+                m.ledger_bytes
+                    .store(kept.ledger.bytes() as u64, Ordering::Relaxed);
+                let evicted = inserted.evicted;
                 // Out of the published map only once its successor is ready: write them first.
-                if let Some(store) = &mut pages {
+                if let Some(store) = &mut kept.pages {
                     page_out(store, &evicted, m);
                 }
                 let evicted = evicted.len();

@@ -14,7 +14,7 @@ use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_transport::zenoh_encoding;
 use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
 use zenoh::Wait;
@@ -55,8 +55,12 @@ pub(super) fn fit_loop(
         .entered();
         let started = Instant::now();
         params.kernel = **state.kernel.load();
+        let log = &state.corrections.log;
+        let lock = || log.lock().unwrap_or_else(PoisonError::into_inner);
+        // Sent with the poses of the corrections issued before it arrived.
+        let sent_after = lock().generation_at(received);
         let map = match LocalRangeMap::fit(&scan, &params) {
-            Ok(map) => Arc::new(map),
+            Ok(map) => Arc::new(map.with_generation(sent_after)),
             Err(e) => {
                 state.metrics.reject(RejectReason::FitFailed);
                 warn!(error = %e, "fit failed; scan rejected");
@@ -70,13 +74,23 @@ pub(super) fn fit_loop(
         // The maps as they stood before this scan: what its returns test.
         let before = state.snapshot.load_full();
         window.push(Arc::clone(&map));
-        let maps = window
-            .snapshot()
-            .with_scales(before.scales)
-            .with_max_sigma(before.max_sigma_m);
-        state
-            .snapshot
-            .rcu(|old| maps.with_aggregate(old.aggregate.clone()));
+        // Every map as moved by the corrections the published aggregate reflects, so that no
+        // query sees a half-corrected map.
+        let maps = {
+            let log = lock();
+            let published = state.snapshot.rcu(|old| {
+                window.bring_up(&log, old.generation);
+                window
+                    .snapshot()
+                    .with_aggregate(old.aggregate.clone())
+                    .with_scales(before.scales)
+                    .with_max_sigma(before.max_sigma_m)
+                    .with_generation(old.generation)
+            });
+            window.bring_up(&log, published.generation);
+            window.snapshot()
+        };
+        let map = maps.maps().first().map_or(map, Arc::clone);
         let latency = received.elapsed();
         m.fit.record(fitted);
         m.scan_to_queryable.record(latency);

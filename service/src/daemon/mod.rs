@@ -5,6 +5,7 @@
 
 mod aggregate;
 mod checkpoint;
+mod correct;
 mod fit;
 mod learn;
 
@@ -14,14 +15,15 @@ use crate::config::{Config, ConfigError};
 use crate::exporter::Exporter;
 use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, ValidationLimits};
+use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::{LocalRangeMap, MapSnapshot};
 use crate::metrics::Metrics;
 use crate::scan::ScanInput;
 use crate::server::{QueryServer, ServerError, MAX_REQUEST_BYTES};
 use crate::shutdown::Shutdown;
-use crate::state::DaemonState;
-use aggregate::{aggregate_loop, FusionBudget};
+use crate::state::{CorrectionDesk, DaemonState};
+use aggregate::{aggregate_loop, FusionBudget, Kept};
 use arc_swap::ArcSwap;
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
@@ -136,6 +138,10 @@ impl DaemonBuilder {
             nugget_m2: params.nugget_m2,
             aggregate_radius_m: config.aggregate.enabled.then_some(config.aggregate.radius_m),
             queue_deadline: Duration::from_millis(config.query.queue_deadline_ms),
+            corrections: CorrectionDesk {
+                log: Mutex::default(),
+                waiting: config.aggregate.enabled.then(Mutex::default),
+            },
         });
         // From here on an early return drops `daemon`, which stops what has started.
         let mut daemon = Daemon {
@@ -193,8 +199,12 @@ impl DaemonBuilder {
             let start = world
                 .clone()
                 .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
+            let kept = Kept {
+                pages,
+                ledger: Ledger::new(config.aggregate.ledger_mib << 20),
+            };
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
-                aggregate_loop(&rx, &state, start, radius_m, budget, pages, &shutdown);
+                aggregate_loop(&rx, &state, start, radius_m, budget, kept, &shutdown);
             })?);
             Some(feed)
         } else {

@@ -10,6 +10,7 @@ use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
 use rangegp_proto::msg::Provenance;
 use std::f64::consts::FRAC_PI_2;
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Which prior mean to build a map with.
@@ -168,9 +169,17 @@ pub struct LocalRangeMap {
     target: RangeTarget,
     max_range: f64,
     fov: FieldOfView,
-    gp: TiledGp,
+    // Shared: a corrected pose re-anchors a map without copying its experts.
+    gp: Arc<TiledGp>,
+    /// Pose corrections this map's pose reflects (see `map::correction`).
+    generation: u64,
     /// The kernel's length scale, kernel-input metres (what provenance is graded against).
     length_scale: f64,
+}
+
+/// Angle between a sensor's z axis and the map's, radians.
+fn tilt_of(pose: &Isometry3<f64>) -> f64 {
+    (pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos()
 }
 
 /// Inclination step of the shadow test's range derivative, radians (0.1°).
@@ -200,14 +209,42 @@ impl LocalRangeMap {
             sequence: scan.sequence,
             stamp_ns: scan.stamp_ns,
             pose: scan.pose,
-            tilt: (scan.pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos(),
+            tilt: tilt_of(&scan.pose),
             prior,
             target: params.target,
             max_range: scan.max_range_m,
             fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
-            gp,
+            gp: Arc::new(gp),
+            generation: 0,
             length_scale: params.kernel.length_scale,
         })
+    }
+
+    /// The same map placed at a corrected sensor pose, reflecting `generation` corrections: the
+    /// range GP lives in the sensor's frame, so a new pose moves the whole map exactly.
+    pub fn reanchored(&self, pose: Isometry3<f64>, generation: u64) -> Self {
+        Self {
+            pose,
+            tilt: tilt_of(&pose),
+            generation,
+            ..self.clone()
+        }
+    }
+
+    /// The sensor's pose in the map frame.
+    pub fn pose(&self) -> &Isometry3<f64> {
+        &self.pose
+    }
+
+    /// Pose corrections this map's pose reflects.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+
+    /// The same map marked as reflecting `generation` corrections (none of which named it).
+    pub fn with_generation(mut self, generation: u64) -> Self {
+        self.generation = generation;
+        self
     }
 
     /// Sensor position in the map frame.

@@ -2,6 +2,7 @@
 
 pub mod aggregate;
 pub mod calibration;
+pub mod correction;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;

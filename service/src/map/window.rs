@@ -1,6 +1,7 @@
 //! The rolling window of recent local maps and the immutable snapshot queries read.
 
 use super::aggregate::world::WorldAggregate;
+use super::correction::CorrectionLog;
 use super::local::LocalRangeMap;
 use super::scales::SigmaScales;
 use std::collections::VecDeque;
@@ -50,6 +51,13 @@ impl Window {
     pub fn snapshot(&self) -> MapSnapshot {
         MapSnapshot::new(self.maps.iter().cloned().collect(), None)
     }
+
+    /// Brings every map up to the first `to` corrections of `log`.
+    pub fn bring_up(&mut self, log: &CorrectionLog, to: u64) {
+        for map in self.maps.iter_mut() {
+            *map = log.bring_up(map, to);
+        }
+    }
 }
 
 /// What a query sees: the window's maps and the aggregate at one instant; swapped atomically.
@@ -66,6 +74,8 @@ pub struct MapSnapshot {
     pub scales: SigmaScales,
     /// Answers with a larger σ (after the scales) are refused as too uncertain, metres.
     pub max_sigma_m: f64,
+    /// Pose corrections the aggregate reflects (and every map, brought up to it).
+    pub generation: u64,
 }
 
 impl Default for MapSnapshot {
@@ -90,6 +100,7 @@ impl MapSnapshot {
             aggregate,
             scales: SigmaScales::default(),
             max_sigma_m: f64::INFINITY,
+            generation: 0,
         }
     }
 
@@ -101,12 +112,29 @@ impl MapSnapshot {
             aggregate,
             scales: self.scales,
             max_sigma_m: self.max_sigma_m,
+            generation: self.generation,
         }
+    }
+
+    /// The same snapshot with every map brought up to the first `to` corrections of `log`, and
+    /// marked as reflecting them.
+    pub fn brought_up(&self, log: &CorrectionLog, to: u64) -> Self {
+        let maps = self.maps.iter().map(|m| log.bring_up(m, to)).collect();
+        Self::new(maps, self.aggregate.clone())
+            .with_scales(self.scales)
+            .with_max_sigma(self.max_sigma_m)
+            .with_generation(to)
     }
 
     /// The same snapshot with another bound on σ (`query.max_sigma_m`).
     pub fn with_max_sigma(mut self, max_sigma_m: f64) -> Self {
         self.max_sigma_m = max_sigma_m;
+        self
+    }
+
+    /// The same snapshot marked as reflecting `generation` corrections.
+    pub fn with_generation(mut self, generation: u64) -> Self {
+        self.generation = generation;
         self
     }
 

@@ -63,6 +63,12 @@ pub struct Metrics {
     pub aggregate_paged_in: AtomicU64,
     /// Tile pages that could not be written or read back.
     pub aggregate_page_failures: AtomicU64,
+    /// Scans the aggregate's ledger keeps (what a pose correction can move).
+    pub ledger_scans: AtomicU64,
+    /// Bytes the ledger holds.
+    pub ledger_bytes: AtomicU64,
+    /// Pose corrections applied.
+    pub corrections: AtomicU64,
     /// Checkpoints written.
     pub checkpoints_written: AtomicU64,
     /// Checkpoint writes that failed (disk full, I/O error); the daemon keeps running.
@@ -115,6 +121,9 @@ impl Default for Metrics {
             aggregate_paged_out: AtomicU64::new(0),
             aggregate_paged_in: AtomicU64::new(0),
             aggregate_page_failures: AtomicU64::new(0),
+            ledger_scans: AtomicU64::new(0),
+            ledger_bytes: AtomicU64::new(0),
+            corrections: AtomicU64::new(0),
             checkpoints_written: AtomicU64::new(0),
             checkpoint_failures: AtomicU64::new(0),
             checkpoints_rejected: AtomicU64::new(0),

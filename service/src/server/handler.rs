@@ -18,6 +18,8 @@ pub enum Endpoint {
     Query(QueryKind),
     /// `rangegp/<map>/status`.
     Status,
+    /// `rangegp/<map>/corrections`.
+    Corrections,
 }
 
 /// A request that is answered with `reply_err`.
@@ -52,6 +54,11 @@ pub fn answer(
                 decode::<StatusRequest>(encoding, payload)?;
             }
             encode(encoding, &status(state))
+        }
+        Endpoint::Corrections => {
+            let req: CorrectionRequest = decode(encoding, payload)?;
+            let reply = super::corrections::submit(state, &req, std::time::Instant::now())?;
+            encode(encoding, &reply)
         }
         Endpoint::Query(QueryKind::Elevation) => {
             let req: ElevationRequest = decode(encoding, payload)?;
@@ -298,7 +305,10 @@ fn status(state: &DaemonState) -> StatusReply {
             paged_out: m.aggregate_paged_out.load(Relaxed),
             paged_in: m.aggregate_paged_in.load(Relaxed),
             page_failures: m.aggregate_page_failures.load(Relaxed),
+            ledger_scans: m.ledger_scans.load(Relaxed),
+            ledger_mb: m.ledger_bytes.load(Relaxed) as f64 / f64::from(1 << 20),
         },
+        corrections: m.corrections.load(Relaxed),
         hyperparameters: {
             let k = state.kernel.load();
             HyperparametersInfo {

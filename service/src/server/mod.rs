@@ -4,6 +4,7 @@
 //! answered on the Zenoh callback directly (bounded work, no hand-off, never behind a batch).
 //! `rangegp/<map>/echo` returns the request's bytes from the callback: the transport floor.
 
+pub mod corrections;
 pub mod handler;
 pub mod reply;
 
@@ -87,6 +88,7 @@ impl QueryServer {
             .map(|&k| (state.keys.query(k), Endpoint::Query(k)))
             .collect();
         endpoints.push((state.keys.status(), Endpoint::Status));
+        endpoints.push((state.keys.corrections(), Endpoint::Corrections));
         let mut queryables = Vec::with_capacity(endpoints.len());
         for (key, endpoint) in endpoints {
             let tx = sender.clone();
@@ -245,11 +247,12 @@ fn serve(endpoint: Endpoint, query: &Query, state: &DaemonState) -> (Encoding, O
             error_reply(encoding, f.code, &f.message)
         }
     };
-    let kind = match endpoint {
-        Endpoint::Query(k) => Some(k),
-        Endpoint::Status => None,
-    };
-    state.metrics.query(kind).record(started.elapsed());
+    // A correction's time is its reply's `apply_ms`, not a query latency.
+    match endpoint {
+        Endpoint::Query(k) => state.metrics.query(Some(k)).record(started.elapsed()),
+        Endpoint::Status => state.metrics.query(None).record(started.elapsed()),
+        Endpoint::Corrections => {}
+    }
     let reply_size = match &outcome {
         Outcome::Answer(b) | Outcome::Error(b) => b.len(),
     };

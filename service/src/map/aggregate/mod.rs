@@ -5,6 +5,7 @@
 //! - [`world::WorldAggregate`]: the project's map, tiled elevation-GP experts over fused
 //!   per-cell heights predicted by each scan's range GP, updated incrementally.
 
+pub mod ledger;
 pub mod pose_gp;
 pub mod world;
 

@@ -8,6 +8,7 @@
 //! margin, so a tile holds a bounded number of points. A new scan refits only the tiles whose
 //! cells it changed. Predictions blend the covering tiles with a partition of unity (no seams).
 
+use super::ledger::{CellEdit, FusedCell, ScanRaster};
 use super::{Aggregate, AggregateError};
 use crate::gp::{CholeskyError, JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
@@ -18,7 +19,7 @@ use nalgebra::Vector3;
 use rangegp_proto::msg::Provenance;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::Arc;
 
 /// Settings of the world aggregate.
@@ -102,6 +103,75 @@ pub struct TilePage {
     pub noise_var: Vec<f64>,
 }
 
+/// What an insert did: the tiles it evicted and each scan's fused cells (for the ledger).
+#[derive(Debug, Clone, Default)]
+pub struct Inserted {
+    /// Tiles that left the radius (to be paged out).
+    pub evicted: Vec<TilePage>,
+    /// Each scan's fused cells, in the batch's order.
+    pub fused: Vec<ScanRaster>,
+}
+
+/// What [`WorldAggregate::apply_edits`] did, and the edits left for pages on disk.
+#[derive(Debug, Clone, Default)]
+pub struct Applied {
+    /// Cells whose evidence changed.
+    pub cells_changed: u64,
+    /// Tiles refitted in memory.
+    pub tiles_refitted: usize,
+    /// Edits for tiles on disk, by tile.
+    pub page_edits: BTreeMap<(i32, i32), Vec<((i32, i32), CellEdit)>>,
+}
+
+impl TilePage {
+    /// Applies cell edits to the page's own cells and to the points its expert is fitted to
+    /// (its cells and its margin's; a margin point keeps no count of scans, so its precision
+    /// alone says when nothing is left of it).
+    pub fn apply_edits(&mut self, edits: &[((i32, i32), CellEdit)], params: &WorldParams) {
+        let (cell_m, n) = (params.cell_m, params.tile_cells);
+        let index = |x: f64, y: f64| ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
+        let mut points: BTreeMap<(i32, i32), Cell> = self
+            .points
+            .iter()
+            .zip(&self.noise_var)
+            .map(|(p, v)| {
+                let var = (v - params.nugget_m2).max(f64::MIN_POSITIVE);
+                (
+                    index(p[0], p[1]),
+                    Cell {
+                        z: p[2],
+                        var,
+                        scans: u32::MAX / 2,
+                    },
+                )
+            })
+            .collect();
+        let mut cells: BTreeMap<(i32, i32), Cell> = self.cells.iter().copied().collect();
+        for &(c, edit) in edits {
+            let after = if (c.0.div_euclid(n), c.1.div_euclid(n)) == self.key {
+                let after = edit.apply(cells.get(&c).copied());
+                match after {
+                    Some(cell) => cells.insert(c, cell),
+                    None => cells.remove(&c),
+                };
+                after
+            } else {
+                edit.apply(points.get(&c).copied())
+            };
+            match after {
+                Some(cell) => points.insert(c, cell),
+                None => points.remove(&c),
+            };
+        }
+        self.cells = cells.into_iter().collect();
+        self.points = points
+            .iter()
+            .map(|(&(i, j), c)| [(i as f64 + 0.5) * cell_m, (j as f64 + 0.5) * cell_m, c.z])
+            .collect();
+        self.noise_var = points.values().map(|c| c.var + params.nugget_m2).collect();
+    }
+}
+
 /// Scans the aggregate remembers having folded in, newest last (provenance for operators and for
 /// replaying a checkpoint; older entries are forgotten, the count is kept).
 pub const HISTORY_LEN: usize = 4096;
@@ -171,6 +241,16 @@ impl WorldAggregate {
         }
     }
 
+    /// Its settings.
+    pub fn params(&self) -> &WorldParams {
+        &self.params
+    }
+
+    /// The scans it remembers having folded in (at most [`HISTORY_LEN`]), oldest first.
+    pub fn history(&self) -> impl Iterator<Item = &ScanRef> {
+        self.history.iter()
+    }
+
     /// Scans folded in since creation (restored with a checkpoint).
     pub fn inserts(&self) -> u64 {
         self.inserts
@@ -200,7 +280,7 @@ impl WorldAggregate {
         radius_m: f64,
     ) -> Result<usize, AggregateError> {
         self.insert_all_and_evict(&[(scan, local)], radius_m, self.params.max_reach_m)
-            .map(|pages| pages.len())
+            .map(|inserted| inserted.evicted.len())
     }
 
     /// Folds every scan of `batch` in, each out to `reach_m` of its sensor (at most
@@ -214,9 +294,9 @@ impl WorldAggregate {
         batch: &[(&ScanInput, &LocalRangeMap)],
         radius_m: f64,
         reach_m: f64,
-    ) -> Result<Vec<TilePage>, AggregateError> {
+    ) -> Result<Inserted, AggregateError> {
         let Some((_, newest)) = batch.last() else {
-            return Ok(Vec::new());
+            return Ok(Inserted::default());
         };
         let s = newest.sensor_position();
         let connected = self.tiles.is_empty()
@@ -224,12 +304,13 @@ impl WorldAggregate {
                 .tiles
                 .keys()
                 .any(|&t| self.tile_distance(t, s.x, s.y) <= radius_m);
-        self.insert_all_within(batch, reach_m)?;
-        Ok(if connected {
+        let fused = self.insert_all_within(batch, reach_m)?;
+        let evicted = if connected {
             self.evict_beyond(s.x, s.y, radius_m)
         } else {
             Vec::new()
-        })
+        };
+        Ok(Inserted { evicted, fused })
     }
 
     /// Folds every scan of `batch` in, in order, each out to `reach_m` of its sensor (at most
@@ -242,25 +323,35 @@ impl WorldAggregate {
         &mut self,
         batch: &[(&ScanInput, &LocalRangeMap)],
         reach_m: f64,
-    ) -> Result<(), AggregateError> {
+    ) -> Result<Vec<ScanRaster>, AggregateError> {
         let mut dirty = BTreeSet::new();
         let insert = self.history.back().map_or(0, |r| r.insert + 1);
         let reach_m = reach_m.min(self.params.max_reach_m);
+        let mut fused = Vec::with_capacity(batch.len());
         for (scan, local) in batch {
-            for (c, e) in self.predicted_cells(local, reach_m) {
-                let cell = self.cells.entry(c).or_insert(Cell {
-                    z: e.z,
-                    var: e.var,
-                    scans: 0,
-                });
+            let cells: Vec<FusedCell> = self
+                .predicted_cells(local, reach_m)
+                .into_iter()
+                // As the ledger keeps them, so that a correction takes out exactly what went in.
+                .map(|(c, e)| (c, e.z as f32, e.var as f32))
+                .filter(|&(_, _, var)| var > 0.0)
+                .collect();
+            for &(c, z, var) in &cells {
+                let (z, var) = (z as f64, var as f64);
+                let cell = self.cells.entry(c).or_insert(Cell { z, var, scans: 0 });
                 if cell.scans > 0 {
-                    let var = 1.0 / (1.0 / cell.var + 1.0 / e.var);
-                    cell.z = var * (cell.z / cell.var + e.z / e.var);
-                    cell.var = var;
+                    let fused_var = 1.0 / (1.0 / cell.var + 1.0 / var);
+                    cell.z = fused_var * (cell.z / cell.var + z / var);
+                    cell.var = fused_var;
                 }
                 cell.scans += 1;
                 dirty.extend(self.tiles_covering(c));
             }
+            fused.push(ScanRaster::new(
+                (scan.publisher_id, scan.sequence, scan.stamp_ns),
+                *local.pose(),
+                &cells,
+            ));
             self.inserts += 1;
             if self.history.len() == HISTORY_LEN {
                 self.history.pop_front();
@@ -273,7 +364,47 @@ impl WorldAggregate {
                 reach_m,
             });
         }
-        self.refit(dirty)
+        self.refit(dirty)?;
+        Ok(fused)
+    }
+
+    /// Applies cell edits (a pose correction's): cells whose tile is in memory, or on no page
+    /// (`paged` says which tiles are on disk), change here and their tiles are refitted; the
+    /// rest are returned per tile on disk, for the caller to apply to the pages
+    /// ([`TilePage::apply_edits`]; a page also holds its margin's cells, so a cell's edit goes
+    /// to every paged tile whose grown box holds it).
+    pub fn apply_edits(
+        &mut self,
+        edits: HashMap<(i32, i32), CellEdit>,
+        paged: &dyn Fn((i32, i32)) -> bool,
+    ) -> Result<Applied, AggregateError> {
+        let mut dirty = BTreeSet::new();
+        let mut applied = Applied::default();
+        let on_disk = |agg: &Self, t: (i32, i32)| !agg.tiles.contains_key(&t) && paged(t);
+        for (c, edit) in edits {
+            if edit == CellEdit::default() {
+                continue;
+            }
+            applied.cells_changed += 1;
+            let own = self.tile_of(c);
+            let covering: Vec<(i32, i32)> = self.tiles_covering(c).collect();
+            if !on_disk(self, own) {
+                match edit.apply(self.cells.get(&c).copied()) {
+                    Some(cell) => self.cells.insert(c, cell),
+                    None => self.cells.remove(&c),
+                };
+            }
+            for t in covering {
+                if on_disk(self, t) {
+                    applied.page_edits.entry(t).or_default().push((c, edit));
+                } else if !on_disk(self, own) {
+                    dirty.insert(t);
+                }
+            }
+        }
+        applied.tiles_refitted = dirty.len();
+        self.refit(dirty)?;
+        Ok(applied)
     }
 
     /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
@@ -616,6 +747,7 @@ impl Aggregate for WorldAggregate {
 
     fn insert(&mut self, scan: &ScanInput, local: &LocalRangeMap) -> Result<(), AggregateError> {
         self.insert_all_within(&[(scan, local)], self.params.max_reach_m)
+            .map(|_| ())
     }
 
     fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
@@ -830,5 +962,115 @@ mod tests {
                 (a, b) => assert_eq!(a, b, "at ({x}, {y})"),
             }
         }
+    }
+
+    /// Scans of `terrain` from `truth`, fused with the poses `sent` (drifted or not); returns
+    /// the aggregate and the ledger of what each scan fused.
+    fn fused_with(
+        terrain: &Heightmap,
+        truth: &[Isometry3<f64>],
+        sent: &[Isometry3<f64>],
+    ) -> (WorldAggregate, super::super::ledger::Ledger) {
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        let mut ledger = super::super::ledger::Ledger::new(1 << 30);
+        for (k, (t, s)) in truth.iter().zip(sent).enumerate() {
+            let mut scan = scan_of(terrain, *t);
+            scan.pose = *s;
+            scan.sequence = k as u64;
+            let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
+            for raster in agg.insert_all_within(&[(&scan, &local)], 8.0).expect("insert") {
+                ledger.push(raster);
+            }
+        }
+        (agg, ledger)
+    }
+
+    fn pose(x: f64, y: f64, yaw: f64) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(x, y, 0.75),
+            UnitQuaternion::from_euler_angles(0.0, 0.0, yaw),
+        )
+    }
+
+    /// RMS height difference of two aggregates over the cells of `a`, and how many.
+    fn cell_rms(a: &WorldAggregate, b: &WorldAggregate) -> (f64, usize) {
+        let d: Vec<f64> = a
+            .cells()
+            .iter()
+            .filter_map(|(c, cell)| b.cells().get(c).map(|o| o.z - cell.z))
+            .collect();
+        (
+            (d.iter().map(|v| v * v).sum::<f64>() / d.len().max(1) as f64).sqrt(),
+            d.len(),
+        )
+    }
+
+    #[test]
+    fn a_correction_moves_drifted_scans_onto_the_map_the_true_poses_make() {
+        let terrain = crate::map::test_support::family_terrain("fbm-h05-16deg", 3, 60.0);
+        let level = |x: f64, y: f64, yaw: f64| {
+            let p = pose(x, y, yaw);
+            let ground = terrain.height(x, y).expect("on the terrain");
+            Isometry3::from_parts(Translation3::new(x, y, ground + 0.75), p.rotation)
+        };
+        let truth: Vec<_> = (0..4)
+            .map(|k| level(2.0 * k as f64, 0.5 * k as f64, 0.1 * k as f64))
+            .collect();
+        // Odometry drifting 5 % of the distance sideways and 2° of heading per scan.
+        let drifted: Vec<_> = truth
+            .iter()
+            .enumerate()
+            .map(|(k, t)| pose(0.0, 0.1 * k as f64, 0.035 * k as f64) * t)
+            .collect();
+        let (right, _) = fused_with(&terrain, &truth, &truth);
+        let (mut wrong, mut ledger) = fused_with(&terrain, &truth, &drifted);
+        let (before, _) = cell_rms(&right, &wrong);
+        let plan = ledger.plan(|r| Some(truth[r.sequence as usize]), 0.25);
+        assert_eq!(plan.moved.len(), 4);
+        // A copy of the drifted map on disk, to be corrected page by page.
+        let mut on_disk = wrong.clone();
+        let mut pages = on_disk.evict_beyond(0.0, 0.0, -1.0);
+        assert!(on_disk.tiles() == 0 && !pages.is_empty());
+        let applied = wrong.apply_edits(plan.edits.clone(), &|_| false).expect("refit");
+        assert!(applied.page_edits.is_empty() && applied.tiles_refitted > 0);
+        ledger.commit(plan.moved);
+        let (after, n) = cell_rms(&right, &wrong);
+        assert!(n > 500, "{n} cells compared");
+        assert!(
+            after < 0.1 * before && after < 0.01,
+            "cell RMS {before:.4} m → {after:.4} m"
+        );
+        // The same edits through the pages: the cells match the corrected map's in memory, and the
+        // tiles fitted from the pages agree with its tiles.
+        let keys: BTreeSet<(i32, i32)> = pages.iter().map(|p| p.key).collect();
+        // Cells the correction moved beyond every paged tile are made in memory.
+        let mut restored = WorldAggregate::new(WorldParams::default());
+        let paged = restored
+            .apply_edits(plan.edits, &|t| keys.contains(&t))
+            .expect("refit");
+        assert!(restored
+            .cells()
+            .keys()
+            .all(|&c| !keys.contains(&restored.tile_of(c))));
+        for page in &mut pages {
+            if let Some(edits) = paged.page_edits.get(&page.key) {
+                page.apply_edits(edits, &WorldParams::default());
+            }
+        }
+        restored.restore_pages(pages).expect("refit");
+        for (c, cell) in wrong.cells() {
+            let o = restored.cells().get(c).expect("a corrected cell is on its page");
+            assert!((o.z - cell.z).abs() < 1e-9 && (o.var - cell.var).abs() < 1e-12 && o.scans == cell.scans);
+        }
+        assert_eq!(restored.len(), wrong.len());
+        let mut compared = 0;
+        for (c, _) in wrong.cells().iter().step_by(37) {
+            let (x, y) = wrong.centre(*c);
+            let a = wrong.elevation(x, y).expect("a fused cell is known");
+            let b = restored.elevation(x, y).expect("so is its page's");
+            assert!((a.z - b.z).abs() < 2e-3, "({x}, {y}): {} vs {}", a.z, b.z);
+            compared += 1;
+        }
+        assert!(compared > 20);
     }
 }
