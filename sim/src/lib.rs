@@ -8,6 +8,7 @@
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
+pub mod drift;
 pub mod family;
 pub mod path;
 pub mod scene;
@@ -15,6 +16,7 @@ pub mod sensor;
 pub mod terrain;
 pub mod trajectory;
 
+pub use drift::OdometryDrift;
 pub use family::{family, TerrainKind, TerrainSpec};
 pub use path::{level_pose, Path};
 pub use scene::{Surface, Tunnel};

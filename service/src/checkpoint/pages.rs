@@ -82,6 +82,18 @@ impl PageStore {
 
     /// Writes `page` atomically, replacing an older page of the same tile.
     pub fn write(&mut self, page: &TilePage) -> Result<(), PageError> {
+        self.put(page)?;
+        self.keys.insert(page.key);
+        Ok(())
+    }
+
+    /// Replaces the page of a tile already on disk, atomically (several at once: it needs no
+    /// exclusive access).
+    pub fn rewrite(&self, page: &TilePage) -> Result<(), PageError> {
+        self.put(page)
+    }
+
+    fn put(&self, page: &TilePage) -> Result<(), PageError> {
         let path = self.path(page.key);
         let tmp = path.with_extension("page.tmp");
         let bytes = encode_framed(PAGE_MAGIC, page, self.identity).map_err(|source| PageError::Format {
@@ -99,7 +111,6 @@ impl PageStore {
             let _ = fs::remove_file(&tmp);
             return Err(io(e));
         }
-        self.keys.insert(page.key);
         Ok(())
     }
 

@@ -116,7 +116,7 @@ pub(super) fn aggregate_loop(
     let mut last_start: Option<Instant> = None;
     let mut generation = AggregateGeneration::default();
     while !shutdown.is_triggered() {
-        apply_waiting(state, &mut world, &mut kept, &mut generation, &pool);
+        apply_waiting(state, &mut world, &mut kept, &mut generation);
         let batch = feed.drain_timeout(Duration::from_millis(50));
         let Some((newest, _)) = batch.last() else {
             continue;

@@ -25,6 +25,7 @@ use crate::shutdown::Shutdown;
 use crate::state::{CorrectionDesk, DaemonState};
 use aggregate::{aggregate_loop, FusionBudget, Kept};
 use arc_swap::ArcSwap;
+pub use correct::{correct_aggregate, AggregateCorrection};
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
 use rangegp_transport::{zenoh_config, TransportConfigError};

@@ -67,11 +67,14 @@ struct RangeTransform {
     transform: Isometry3<f64>,
 }
 
+/// A pose with its place in the request.
+type OrderedPose = (usize, Isometry3<f64>);
+
 /// A validated correction request, ready to be asked about any scan.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Correction {
     /// Per (publisher, sequence): (order in the request, corrected pose).
-    poses: HashMap<(u64, u64), Vec<(usize, Isometry3<f64>)>>,
+    poses: HashMap<(u64, u64), Vec<OrderedPose>>,
     ranges: Vec<RangeTransform>,
 }
 

@@ -103,13 +103,18 @@ impl ScanRaster {
         std::mem::size_of::<Self>() + 8 * self.z.len()
     }
 
-    /// Height and variance of the fused surface at (x, y): bilinear between the four nearest
-    /// cell centres, renormalised over those present when their weight is at least half.
+    /// Height and variance of the scan's surface at (x, y), from the four nearest cell centres:
+    /// precision bilinear, height bilinear weighted by precision (a range map's heights are
+    /// surest on its rings and vary fast between them: plain bilinear let the unsure samples
+    /// between rings pull as hard as the sure ones, +8 % RMSE after a correction on the sim
+    /// family; weighted by precision the corrected map equals the one mapped with the true poses).
+    /// Past the raster's edge (a corner missing) the present ones are used when they hold at
+    /// least half the weight.
     fn interpolate(&self, x: f64, y: f64, cell_m: f64) -> Option<(f64, f64)> {
         let (u, v) = (x / cell_m - 0.5, y / cell_m - 0.5);
         let (i, j) = (u.floor() as i32, v.floor() as i32);
         let (fu, fv) = (u - i as f64, v - j as f64);
-        let (mut w, mut z, mut var) = (0.0, 0.0, 0.0);
+        let (mut w, mut precision, mut weighted_z) = (0.0, 0.0, 0.0);
         for (di, dj, wk) in [
             (0, 0, (1.0 - fu) * (1.0 - fv)),
             (1, 0, fu * (1.0 - fv)),
@@ -117,12 +122,13 @@ impl ScanRaster {
             (1, 1, fu * fv),
         ] {
             if let Some((zk, vk)) = self.at(i + di, j + dj) {
+                let pk = wk / vk as f64;
                 w += wk;
-                z += wk * zk as f64;
-                var += wk * vk as f64;
+                precision += pk;
+                weighted_z += pk * zk as f64;
             }
         }
-        (w >= 0.5).then(|| (z / w, var / w))
+        (w >= 0.5 && precision > 0.0).then(|| (weighted_z / precision, w / precision))
     }
 
     /// The raster this scan fuses at `pose` instead (see the module's description).
@@ -147,12 +153,22 @@ impl ScanRaster {
             ((lo / cell_m).floor() as i32 - 1, (hi / cell_m).ceil() as i32 + 1)
         };
         let ((ilo, ihi), (jlo, jhi)) = (span(|p| p.x), span(|p| p.y));
+        // A correction about the vertical only (the common case: a loop closure's x, y, z and
+        // yaw) carries a point's height by its z shift alone: no fixed point to find.
+        let level = (delta.rotation * Vector3::z()).z > 1.0 - 1e-12;
         let mut moved = Vec::new();
         if !cells.is_empty() {
             for i in ilo..=ihi {
                 for j in jlo..=jhi {
                     let target = Vector3::new((i as f64 + 0.5) * cell_m, (j as f64 + 0.5) * cell_m, 0.0);
-                    if let Some((z, var)) = self.carried(&delta, &inverse, target, mean_z, cell_m) {
+                    let carried = if level {
+                        let p = inverse * Point3::new(target.x, target.y, 0.0);
+                        self.interpolate(p.x, p.y, cell_m)
+                            .map(|(z, var)| (z + delta.translation.z, var))
+                    } else {
+                        self.carried(&delta, &inverse, target, mean_z, cell_m)
+                    };
+                    if let Some((z, var)) = carried {
                         moved.push(((i, j), z as f32, var as f32));
                     }
                 }
@@ -227,18 +243,91 @@ impl CellEdit {
     }
 }
 
-/// The cells that moving `rasters` from their poses to the new ones changes.
+/// The cells that moving `rasters` from their poses to the new ones changes (only those whose
+/// evidence changes).
 pub fn edits_of_moves(moves: &[(&ScanRaster, &ScanRaster)]) -> HashMap<(i32, i32), CellEdit> {
-    let mut edits: HashMap<(i32, i32), CellEdit> = HashMap::new();
-    for (old, new) in moves {
-        for (c, z, var) in old.cells() {
-            edits.entry(c).or_default().add(z as f64, var as f64, -1.0);
+    use rayon::prelude::*;
+    moves
+        .par_iter()
+        .fold(EditBlocks::default, |mut blocks, (old, new)| {
+            blocks.add(old, -1.0);
+            blocks.add(new, 1.0);
+            blocks
+        })
+        .reduce(EditBlocks::default, EditBlocks::merge)
+        .into_edits()
+}
+
+/// A block's index and its cells' edits, row-major.
+type Block = ((i32, i32), Box<[CellEdit]>);
+
+/// Edits to cells, each with its cell's index.
+pub type CellEdits = Vec<((i32, i32), CellEdit)>;
+
+/// Side of an [`EditBlocks`] block, cells.
+const BLOCK: i32 = 16;
+
+/// Cell edits accumulated in dense 16 × 16 blocks: a raster's row touches a new block every 16
+/// cells, so a few lookups serve thousands of cells (a hash per cell cost half a second over a
+/// 500 m trajectory's 23 million).
+#[derive(Debug, Default)]
+struct EditBlocks {
+    index: HashMap<(i32, i32), usize>,
+    blocks: Vec<Block>,
+}
+
+impl EditBlocks {
+    fn block(&mut self, key: (i32, i32)) -> usize {
+        let next = self.blocks.len();
+        let k = *self.index.entry(key).or_insert(next);
+        if k == next {
+            let empty = vec![CellEdit::default(); (BLOCK * BLOCK) as usize].into_boxed_slice();
+            self.blocks.push((key, empty));
         }
-        for (c, z, var) in new.cells() {
-            edits.entry(c).or_default().add(z as f64, var as f64, 1.0);
+        k
+    }
+
+    fn add(&mut self, raster: &ScanRaster, sign: f64) {
+        let mut last: Option<((i32, i32), usize)> = None;
+        for ((i, j), z, var) in raster.cells() {
+            let key = (i.div_euclid(BLOCK), j.div_euclid(BLOCK));
+            let k = match last {
+                Some((at, k)) if at == key => k,
+                _ => {
+                    let k = self.block(key);
+                    last = Some((key, k));
+                    k
+                }
+            };
+            let slot = (j.rem_euclid(BLOCK) * BLOCK + i.rem_euclid(BLOCK)) as usize;
+            self.blocks[k].1[slot].add(z as f64, var as f64, sign);
         }
     }
-    edits
+
+    fn merge(mut self, other: Self) -> Self {
+        for (key, block) in other.blocks {
+            let k = self.block(key);
+            for (a, b) in self.blocks[k].1.iter_mut().zip(block.iter()) {
+                a.precision += b.precision;
+                a.weighted_z += b.weighted_z;
+                a.scans += b.scans;
+            }
+        }
+        self
+    }
+
+    fn into_edits(self) -> HashMap<(i32, i32), CellEdit> {
+        let mut edits = HashMap::new();
+        for ((bi, bj), block) in self.blocks {
+            for (slot, e) in block.iter().enumerate() {
+                if *e != CellEdit::default() {
+                    let (a, b) = (slot as i32 % BLOCK, slot as i32 / BLOCK);
+                    edits.insert((bi * BLOCK + a, bj * BLOCK + b), *e);
+                }
+            }
+        }
+        edits
+    }
 }
 
 /// The rasters of the scans fused lately, newest last, within a memory budget.
@@ -351,10 +440,12 @@ mod tests {
 
     const CELL: f64 = 0.25;
 
-    /// A raster of the plane z = 0.1 x + 0.05 y + 0.3 over the cells of a 4 m square.
+    /// A raster of the plane z = 0.1 x + 0.05 y + 0.3 over the cells of a 4 m square, but for a
+    /// hole of one cell (around it three corners are averaged: not exact).
     fn plane_raster(pose: Isometry3<f64>) -> ScanRaster {
         let cells: Vec<FusedCell> = (-8..8)
             .flat_map(|i| (-8..8).map(move |j| (i, j)))
+            .filter(|&c| c != (2, 2))
             .map(|(i, j)| {
                 let (x, y) = ((i as f64 + 0.5) * CELL, (j as f64 + 0.5) * CELL);
                 ((i, j), (0.1 * x + 0.05 * y + 0.3) as f32, 1e-4)
@@ -378,9 +469,10 @@ mod tests {
             // The carried plane: points p of the old plane map to delta · p; check c is on it.
             let p = delta.inverse() * Point3::new(c.x, c.y, z as f64);
             let on_plane = 0.1 * p.x + 0.05 * p.y + 0.3;
-            // Between four old centres the plane is carried exactly; past the outer centres
-            // the nearest present ones are averaged (at most half a cell's slope off).
-            let inside = p.x.abs() < 1.875 && p.y.abs() < 1.875;
+            // Between four old centres (all of one variance) the plane is carried exactly; past
+            // the outer centres the present ones are averaged (at most half a cell's slope off).
+            let hole = (p.x - 0.625).abs() < 0.25 && (p.y - 0.625).abs() < 0.25;
+            let inside = p.x.abs() < 1.875 && p.y.abs() < 1.875 && !hole;
             let tolerance = if inside { 1e-5 } else { 0.5 * 0.25 * 0.1 };
             assert!(
                 (p.z - on_plane).abs() < tolerance,
@@ -397,13 +489,13 @@ mod tests {
         let again: HashMap<(i32, i32), f32> = back.cells().map(|(c, z, _)| (c, z)).collect();
         let inner = raster
             .cells()
-            .filter(|((i, j), _, _)| i.abs() < 6 && j.abs() < 6)
+            .filter(|((i, j), _, _)| i.abs() < 6 && j.abs() < 6 && ((i - 2).abs() > 1 || (j - 2).abs() > 1))
             .inspect(|(c, z, _)| {
                 let z2 = again.get(c).expect("inner cells survive the round trip");
                 assert!((z - z2).abs() < 1e-5);
             })
             .count();
-        assert_eq!(inner, 121);
+        assert_eq!(inner, 112);
     }
 
     #[test]
