@@ -339,6 +339,28 @@ impl Client {
             })
     }
 
+    /// Calls `on_change` with every [`ChangeEvent`] the daemon publishes (aggregate cells
+    /// replaced by disagreeing scans: something appeared, left or moved); drop the subscriber to
+    /// stop.
+    pub fn subscribe_changes(
+        &self,
+        on_change: impl Fn(ChangeEvent) + Send + Sync + 'static,
+    ) -> Result<zenoh::pubsub::Subscriber<()>, ClientError> {
+        self.session
+            .declare_subscriber(self.keys.changes())
+            .callback(move |sample| {
+                let bytes = sample.payload().to_bytes();
+                if let Ok(event) = codec::decode::<ChangeEvent>(Encoding::Bincode, &bytes) {
+                    on_change(event);
+                }
+            })
+            .wait()
+            .map_err(|source| ClientError::Transport {
+                action: "declare a subscriber",
+                source,
+            })
+    }
+
     /// The keys of the map this client talks to.
     pub fn keys(&self) -> &MapKeys {
         &self.keys

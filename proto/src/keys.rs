@@ -93,6 +93,11 @@ impl MapKeys {
         format!("rangegp/{}/events/map", self.map_id)
     }
 
+    /// `rangegp/<map_id>/events/change`, where [`crate::msg::ChangeEvent`]s are published.
+    pub fn changes(&self) -> String {
+        format!("rangegp/{}/events/change", self.map_id)
+    }
+
     /// `rangegp/<map_id>/corrections`, where [`crate::msg::CorrectionRequest`]s are sent.
     pub fn corrections(&self) -> String {
         format!("rangegp/{}/corrections", self.map_id)
@@ -122,6 +127,7 @@ mod tests {
         assert_eq!(k.map_updates(), "rangegp/rover_1/events/map");
         assert_eq!(k.echo(), "rangegp/rover_1/echo");
         assert_eq!(k.corrections(), "rangegp/rover_1/corrections");
+        assert_eq!(k.changes(), "rangegp/rover_1/events/change");
         assert_eq!(k.scan_service(), "rangegp/rover_1/scans");
     }
 

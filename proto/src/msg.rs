@@ -390,6 +390,8 @@ pub struct AggregateInfo {
     pub ledger_scans: u64,
     /// Memory the ledger holds, MiB (`aggregate.ledger_mib` bounds it).
     pub ledger_mb: f64,
+    /// Cells replaced by scans that disagreed with them (published as change events).
+    pub changed_cells: u64,
 }
 
 /// The daemon's state and counters.
@@ -464,6 +466,42 @@ pub struct MapUpdate {
     pub latency_ms: f64,
     /// Local maps in the window now.
     pub window_len: u32,
+}
+
+/// One aggregate cell replaced because new scans disagreed with it beyond both σ.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ChangedCell {
+    /// The cell's centre in the map frame, metres.
+    pub x_m: f64,
+    /// The cell's centre y, metres.
+    pub y_m: f64,
+    /// Height before, metres.
+    pub old_z_m: f64,
+    /// Its σ, metres.
+    pub old_sigma_m: f64,
+    /// Height now, metres (`None`: the cell left the map: rays passed below what it held and
+    /// the scan has no height of its own there; the next scan that does fills it).
+    pub new_z_m: Option<f64>,
+    /// Its σ, metres.
+    pub new_sigma_m: Option<f64>,
+}
+
+/// Published on `rangegp/<map>/events/change` when a scan's evidence replaced aggregate cells
+/// (something appeared, left or moved there).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChangeEvent {
+    /// Protocol version of the event.
+    pub version: u32,
+    /// Publisher of the scan that confirmed the change.
+    pub publisher_id: u64,
+    /// Its sequence number.
+    pub sequence: u64,
+    /// Its acquisition time, ns since the Unix epoch.
+    pub stamp_ns: u64,
+    /// The cell side, metres.
+    pub cell_m: f64,
+    /// The cells replaced.
+    pub cells: Vec<ChangedCell>,
 }
 
 /// A rigid transform of the map frame: `p ↦ rotation · p + translation`.

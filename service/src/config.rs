@@ -253,6 +253,11 @@ pub struct AggregateConfig {
     /// scan takes 8 bytes per cell of the square its reach spans (a 6 m reach: 18 KiB); the
     /// oldest leave first, and a correction naming a forgotten scan counts it not correctable.
     pub ledger_mib: usize,
+    /// Detect moving objects and changes: cells whose new evidence disagrees with the old beyond
+    /// both σ are replaced, not averaged, and announced on `events/change`. Off by default:
+    /// odometry drift looks like change where the robot returns, and a later pose correction
+    /// does not restore cells replaced then.
+    pub change_detection: bool,
 }
 
 impl Default for AggregateConfig {
@@ -263,6 +268,7 @@ impl Default for AggregateConfig {
             radius_m: 30.0,
             cpu_share: 0.5,
             ledger_mib: 128,
+            change_detection: false,
         }
     }
 }

@@ -273,6 +273,12 @@ impl Collector for DaemonCollector {
             "Pose corrections applied",
             m.corrections.load(Relaxed),
         )?;
+        counter(
+            e,
+            "aggregate_changed_cells",
+            "Aggregate cells replaced by disagreeing scans",
+            m.changed_cells.load(Relaxed),
+        )?;
         gauge(
             e,
             "aggregate_ledger_scans",

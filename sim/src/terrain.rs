@@ -98,6 +98,25 @@ impl Heightmap {
         Self::from_samples(size_m, resolution, z.into_iter().map(|v| v as f32).collect())
     }
 
+    /// The same map with an object standing on it: the ground inside the axis-aligned box
+    /// centred at (x, y) with half sides `half_m` raised by `height_m` (a boulder or a vehicle
+    /// with vertical faces, at the map's resolution).
+    pub fn with_box(&self, x: f64, y: f64, half_m: [f64; 2], height_m: f64) -> Self {
+        let mut z = self.z.clone();
+        for j in 0..self.n {
+            for i in 0..self.n {
+                let (px, py) = (
+                    self.origin[0] + i as f64 * self.resolution,
+                    self.origin[1] + j as f64 * self.resolution,
+                );
+                if (px - x).abs() <= half_m[0] && (py - y).abs() <= half_m[1] {
+                    z[j * self.n + i] += height_m as f32;
+                }
+            }
+        }
+        Self::from_samples((self.n - 1) as f64 * self.resolution, self.resolution, z)
+    }
+
     /// The height samples, row-major (y rows of x samples).
     pub fn samples(&self) -> &[f32] {
         &self.z
@@ -331,5 +350,15 @@ mod tests {
         let dir = Vector3::new(1.0, 0.0, -0.1).normalize();
         let t = m.cast(Vector3::new(0.0, 0.0, 0.75), dir, 20.0).expect("hit");
         assert!((t - 0.75 / (-dir.z)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_box_raises_the_ground_inside_it_only() {
+        let flat = Heightmap::flat(20.0, 0.1, 0.2);
+        let with = flat.with_box(1.0, -2.0, [0.5, 0.3], 0.6);
+        assert_eq!(with.height(1.0, -2.0), Some(0.8f32 as f64));
+        assert_eq!(with.height(1.4, -1.8), Some(0.8f32 as f64));
+        assert_eq!(with.height(1.7, -2.0), Some(0.2f32 as f64));
+        assert_eq!(with.height(-3.0, 4.0), flat.height(-3.0, 4.0));
     }
 }

@@ -4,6 +4,7 @@
 pub mod aggregate;
 pub mod bars;
 pub mod calibration;
+pub mod change;
 pub mod drift;
 mod drive;
 pub mod local;

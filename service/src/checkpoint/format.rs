@@ -21,7 +21,7 @@ use thiserror::Error;
 /// First bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RGPCKPT\0";
 /// Layout version; bumped when [`Checkpoint`] changes.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 const HEADER_LEN: usize = 8 + 4 + 8 + 8;
 const TRAILER_LEN: usize = 8;
 

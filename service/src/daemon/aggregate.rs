@@ -2,20 +2,25 @@
 //! result. When it falls behind, the scans that waited meanwhile are fused together in one
 //! insert (each tile refitted once), so it catches up instead of dropping scans.
 
-use super::correct::{apply_waiting, AggregateGeneration};
+use super::correct::{apply_waiting, AggregateGeneration, Kept};
 use super::AggregateFeed;
 use crate::checkpoint::PageStore;
-use crate::map::aggregate::ledger::Ledger;
-use crate::map::aggregate::world::{TilePage, WorldAggregate};
+use crate::map::aggregate::world::{Change, TilePage, WorldAggregate};
 use crate::map::aggregate::Aggregate;
 use crate::metrics::Metrics;
 use crate::priority::{lower_current_thread, Background};
+use crate::scan::ScanInput;
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
+use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::msg::{ChangeEvent, ChangedCell};
+use rangegp_proto::PROTOCOL_VERSION;
+use rangegp_transport::zenoh_encoding;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
+use zenoh::Wait;
 
 /// How far from its sensor each scan is fused, so that fusing keeps up with the sensor on a
 /// share of one core: the cost of a scan grows as the square of its reach, so with c the
@@ -72,15 +77,6 @@ impl FusionBudget {
             self.rate = smooth(self.rate, scans as f64 / since_last.as_secs_f64());
         }
     }
-}
-
-/// What the aggregate thread keeps besides the map: the site map on disk (checkpoints on) and
-/// the ledger of each scan's cells (what a pose correction moves).
-pub(super) struct Kept {
-    /// Tiles beyond the radius, on disk.
-    pub pages: Option<PageStore>,
-    /// Each fused scan's cells, within a memory budget.
-    pub ledger: Ledger,
 }
 
 /// Folds every fitted scan from `feed` into the world aggregate, each out to the reach `budget`
@@ -154,6 +150,9 @@ pub(super) fn aggregate_loop(
                 for raster in inserted.fused {
                     kept.ledger.push(raster);
                 }
+                for ((scan, _), cells) in batch.iter().zip(&inserted.changes) {
+                    announce_changes(&kept.changes, scan, cells, world.params().cell_m, m);
+                }
                 m.ledger_scans.store(kept.ledger.len() as u64, Ordering::Relaxed);
                 m.ledger_bytes
                     .store(kept.ledger.bytes() as u64, Ordering::Relaxed);
@@ -184,6 +183,50 @@ pub(super) fn aggregate_loop(
                 warn!(error = %e, scans = n, "aggregate insert failed; the scans stay in the window only");
             }
         }
+    }
+}
+
+/// Publishes the cells `scan` replaced (nothing when none).
+fn announce_changes(
+    publisher: &zenoh::pubsub::Publisher<'static>,
+    scan: &ScanInput,
+    cells: &[Change],
+    cell_m: f64,
+    m: &Metrics,
+) {
+    if cells.is_empty() {
+        return;
+    }
+    m.changed_cells.fetch_add(cells.len() as u64, Ordering::Relaxed);
+    let event = ChangeEvent {
+        version: PROTOCOL_VERSION,
+        publisher_id: scan.publisher_id,
+        sequence: scan.sequence,
+        stamp_ns: scan.stamp_ns,
+        cell_m,
+        cells: cells
+            .iter()
+            .map(|c| ChangedCell {
+                x_m: c.x_m,
+                y_m: c.y_m,
+                old_z_m: c.old.z,
+                old_sigma_m: c.old.var.sqrt(),
+                new_z_m: c.new.z.is_finite().then_some(c.new.z),
+                new_sigma_m: c.new.z.is_finite().then(|| c.new.var.sqrt()),
+            })
+            .collect(),
+    };
+    match codec::encode(Encoding::Bincode, &event) {
+        Ok(bytes) => {
+            if let Err(e) = publisher
+                .put(bytes)
+                .encoding(zenoh_encoding(Encoding::Bincode))
+                .wait()
+            {
+                debug!(error = %e, "change event not published");
+            }
+        }
+        Err(e) => warn!(error = %e, "cannot encode a change event"),
     }
 }
 

@@ -2,7 +2,6 @@
 //! and the pages on disk, and publish the corrected aggregate with the window's maps moved by
 //! the same correction in one snapshot swap.
 
-use super::aggregate::Kept;
 use crate::checkpoint::{PageError, PageStore};
 use crate::map::aggregate::ledger::{Ledger, ScanRaster};
 use crate::map::aggregate::world::WorldAggregate;
@@ -16,6 +15,17 @@ use rayon::prelude::*;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, PoisonError};
 use tracing::{info, info_span, warn};
+
+/// What the aggregate thread keeps besides the map: the site map on disk (checkpoints on) and
+/// the ledger of each scan's cells (what a pose correction moves).
+pub(super) struct Kept {
+    /// Tiles beyond the radius, on disk.
+    pub pages: Option<PageStore>,
+    /// Each fused scan's cells, within a memory budget.
+    pub ledger: Ledger,
+    /// Where the cells each scan replaced are announced.
+    pub changes: zenoh::pubsub::Publisher<'static>,
+}
 
 /// The corrections the aggregate thread has applied (its maps are brought up to these).
 #[derive(Debug, Default)]
@@ -92,7 +102,8 @@ pub fn correct_aggregate(
     pages: Option<&mut PageStore>,
     c: &Correction,
 ) -> Result<AggregateCorrection, AggregateError> {
-    let plan = ledger.plan(|r| c.apply(scan_id(r), &r.pose), world.params().cell_m);
+    let stale = |cell, insert| world.replaced_at(cell).is_some_and(|at| at > insert);
+    let plan = ledger.plan(|r| c.apply(scan_id(r), &r.pose), world.params().cell_m, &stale);
     let ids = ledger.ids();
     let not_correctable = world
         .history()

@@ -23,8 +23,9 @@ use crate::scan::ScanInput;
 use crate::server::{QueryServer, ServerError, MAX_REQUEST_BYTES};
 use crate::shutdown::Shutdown;
 use crate::state::{CorrectionDesk, DaemonState};
-use aggregate::{aggregate_loop, FusionBudget, Kept};
+use aggregate::{aggregate_loop, FusionBudget};
 use arc_swap::ArcSwap;
+use correct::Kept;
 pub use correct::{correct_aggregate, AggregateCorrection};
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
@@ -107,7 +108,10 @@ impl DaemonBuilder {
         })?;
         let metrics = Arc::new(Metrics::default());
         let mut params = config.map_params();
-        let world_params = WorldParams::default();
+        let world_params = WorldParams {
+            change_detection: config.aggregate.change_detection,
+            ..WorldParams::default()
+        };
         let (store, restored) = if config.aggregate.enabled {
             crate::checkpoint::resume(
                 config.checkpoint_dir().as_deref(),
@@ -200,9 +204,17 @@ impl DaemonBuilder {
             let start = world
                 .clone()
                 .unwrap_or_else(|| Arc::new(WorldAggregate::new(world_params)));
+            let changes = session
+                .declare_publisher(state.keys.changes())
+                .wait()
+                .map_err(|source| StartError::Zenoh {
+                    action: "declare the change publisher",
+                    source,
+                })?;
             let kept = Kept {
                 pages,
                 ledger: Ledger::new(config.aggregate.ledger_mib << 20),
+                changes,
             };
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
                 aggregate_loop(&rx, &state, start, radius_m, budget, kept, &shutdown);

@@ -69,6 +69,8 @@ pub struct Metrics {
     pub ledger_bytes: AtomicU64,
     /// Pose corrections applied.
     pub corrections: AtomicU64,
+    /// Aggregate cells replaced by disagreeing scans (changes).
+    pub changed_cells: AtomicU64,
     /// Checkpoints written.
     pub checkpoints_written: AtomicU64,
     /// Checkpoint writes that failed (disk full, I/O error); the daemon keeps running.
@@ -124,6 +126,7 @@ impl Default for Metrics {
             ledger_scans: AtomicU64::new(0),
             ledger_bytes: AtomicU64::new(0),
             corrections: AtomicU64::new(0),
+            changed_cells: AtomicU64::new(0),
             checkpoints_written: AtomicU64::new(0),
             checkpoint_failures: AtomicU64::new(0),
             checkpoints_rejected: AtomicU64::new(0),

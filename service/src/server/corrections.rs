@@ -1,23 +1,33 @@
 //! The query worker's side of a pose correction: validate it, hand it to the aggregate thread
 //! and wait (bounded) for the outcome, or, without an aggregate, move the window's maps here.
 
-use super::handler::Failure;
-use crate::map::correction::{Correction, ScanId};
+use crate::map::correction::{Correction, InvalidCorrection, ScanId};
 use crate::state::{CorrectionJob, DaemonState, CORRECTIONS_WAITING};
-use rangegp_proto::msg::{CorrectionReply, CorrectionRequest, ErrorCode};
+use rangegp_proto::msg::{CorrectionReply, CorrectionRequest};
 use rangegp_proto::PROTOCOL_VERSION;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{mpsc, Arc, PoisonError};
 use std::time::{Duration, Instant};
+use thiserror::Error;
 
 /// Longest wait for the aggregate thread to apply a correction.
 pub const CORRECTION_DEADLINE: Duration = Duration::from_secs(30);
 
-fn failure(code: ErrorCode, message: impl Into<String>) -> Failure {
-    Failure {
-        code,
-        message: message.into(),
-    }
+/// Why a correction was not applied (nothing changed, except for `TimedOut`).
+#[derive(Debug, Error)]
+pub enum SubmitError {
+    /// The request is invalid.
+    #[error(transparent)]
+    Invalid(#[from] InvalidCorrection),
+    /// Too many corrections are waiting already; retry later.
+    #[error("{CORRECTIONS_WAITING} corrections are waiting already; retry later")]
+    Busy,
+    /// The aggregate could not be corrected.
+    #[error("{0}")]
+    Failed(String),
+    /// Not applied within [`CORRECTION_DEADLINE`] (it stays queued and may still apply).
+    #[error("the correction was not applied within {} s (it stays queued and may still apply)", CORRECTION_DEADLINE.as_secs())]
+    TimedOut,
 }
 
 /// Applies `req` (arrived at `arrived`) and says what it changed once queries see it.
@@ -25,10 +35,8 @@ pub fn submit(
     state: &DaemonState,
     req: &CorrectionRequest,
     arrived: Instant,
-) -> Result<CorrectionReply, Failure> {
-    let correction = Arc::new(
-        Correction::from_request(req).map_err(|e| failure(ErrorCode::InvalidArgument, e.to_string()))?,
-    );
+) -> Result<CorrectionReply, SubmitError> {
+    let correction = Arc::new(Correction::from_request(req)?);
     let Some(waiting) = &state.corrections.waiting else {
         return Ok(window_only(state, correction, arrived));
     };
@@ -36,10 +44,7 @@ pub fn submit(
     {
         let mut queue = waiting.lock().unwrap_or_else(PoisonError::into_inner);
         if queue.len() >= CORRECTIONS_WAITING {
-            return Err(failure(
-                ErrorCode::Overloaded,
-                format!("{CORRECTIONS_WAITING} corrections are waiting already; retry later"),
-            ));
+            return Err(SubmitError::Busy);
         }
         queue.push_back(CorrectionJob {
             correction,
@@ -49,14 +54,8 @@ pub fn submit(
     }
     match outcome.recv_timeout(CORRECTION_DEADLINE) {
         Ok(Ok(reply)) => Ok(reply),
-        Ok(Err(message)) => Err(failure(ErrorCode::Internal, message)),
-        Err(_) => Err(failure(
-            ErrorCode::Internal,
-            format!(
-                "the correction was not applied within {} s (it stays queued and may still apply)",
-                CORRECTION_DEADLINE.as_secs()
-            ),
-        )),
+        Ok(Err(message)) => Err(SubmitError::Failed(message)),
+        Err(_) => Err(SubmitError::TimedOut),
     }
 }
 

@@ -57,7 +57,15 @@ pub fn answer(
         }
         Endpoint::Corrections => {
             let req: CorrectionRequest = decode(encoding, payload)?;
-            let reply = super::corrections::submit(state, &req, std::time::Instant::now())?;
+            use super::corrections::{submit, SubmitError};
+            let reply = submit(state, &req, std::time::Instant::now()).map_err(|e| Failure {
+                code: match e {
+                    SubmitError::Invalid(_) => ErrorCode::InvalidArgument,
+                    SubmitError::Busy => ErrorCode::Overloaded,
+                    SubmitError::Failed(_) | SubmitError::TimedOut => ErrorCode::Internal,
+                },
+                message: e.to_string(),
+            })?;
             encode(encoding, &reply)
         }
         Endpoint::Query(QueryKind::Elevation) => {
@@ -307,6 +315,7 @@ fn status(state: &DaemonState) -> StatusReply {
             page_failures: m.aggregate_page_failures.load(Relaxed),
             ledger_scans: m.ledger_scans.load(Relaxed),
             ledger_mb: m.ledger_bytes.load(Relaxed) as f64 / f64::from(1 << 20),
+            changed_cells: m.changed_cells.load(Relaxed),
         },
         corrections: m.corrections.load(Relaxed),
         hyperparameters: {

@@ -10,9 +10,20 @@
 //! quarter of a cell's curvature). Heights and variances are kept as f32, and fused as f32
 //! (rounded before fusing), so taking a scan out of a cell removes exactly what went in.
 
-use super::world::Cell;
 use nalgebra::{Isometry3, Point3, Vector3};
+use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
+
+/// A fused cell: the height at its centre and its variance.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Cell {
+    /// Height, metres.
+    pub z: f64,
+    /// Variance, m².
+    pub var: f64,
+    /// Scans fused into it.
+    pub scans: u32,
+}
 
 /// One scan's fused cells and the pose it was fused with.
 #[derive(Debug, Clone, PartialEq)]
@@ -25,6 +36,9 @@ pub struct ScanRaster {
     pub stamp_ns: u64,
     /// The sensor pose the cells were predicted from.
     pub pose: Isometry3<f64>,
+    /// The aggregate's count of scans when this one was fused (a cell replaced by a change at a
+    /// later count no longer holds its evidence).
+    pub insert: u64,
     origin: (i32, i32),
     cols: usize,
     rows: usize,
@@ -60,6 +74,7 @@ impl ScanRaster {
             sequence,
             stamp_ns,
             pose,
+            insert: 0,
             origin: lo,
             cols,
             rows,
@@ -174,7 +189,9 @@ impl ScanRaster {
                 }
             }
         }
-        Self::new((self.publisher_id, self.sequence, self.stamp_ns), pose, &moved)
+        let mut raster = Self::new((self.publisher_id, self.sequence, self.stamp_ns), pose, &moved);
+        raster.insert = self.insert;
+        raster
     }
 
     /// The old surface's point that `delta` carries above `target` (x, y): its new height and
@@ -243,15 +260,19 @@ impl CellEdit {
     }
 }
 
+/// Whether a scan fused at the given count no longer holds evidence in a cell (it was replaced
+/// by a change since).
+pub type Stale<'a> = &'a (dyn Fn((i32, i32), u64) -> bool + Sync);
+
 /// The cells that moving `rasters` from their poses to the new ones changes (only those whose
-/// evidence changes).
-pub fn edits_of_moves(moves: &[(&ScanRaster, &ScanRaster)]) -> HashMap<(i32, i32), CellEdit> {
+/// evidence changes; cells `stale` for a scan are left alone: its evidence is not in them).
+pub fn edits_of_moves(moves: &[(&ScanRaster, &ScanRaster)], stale: Stale) -> HashMap<(i32, i32), CellEdit> {
     use rayon::prelude::*;
     moves
         .par_iter()
         .fold(EditBlocks::default, |mut blocks, (old, new)| {
-            blocks.add(old, -1.0);
-            blocks.add(new, 1.0);
+            blocks.add(old, -1.0, stale);
+            blocks.add(new, 1.0, stale);
             blocks
         })
         .reduce(EditBlocks::default, EditBlocks::merge)
@@ -287,9 +308,12 @@ impl EditBlocks {
         k
     }
 
-    fn add(&mut self, raster: &ScanRaster, sign: f64) {
+    fn add(&mut self, raster: &ScanRaster, sign: f64, stale: Stale) {
         let mut last: Option<((i32, i32), usize)> = None;
         for ((i, j), z, var) in raster.cells() {
+            if stale((i, j), raster.insert) {
+                continue;
+            }
             let key = (i.div_euclid(BLOCK), j.div_euclid(BLOCK));
             let k = match last {
                 Some((at, k)) if at == key => k,
@@ -397,6 +421,7 @@ impl Ledger {
         &self,
         new_pose: impl Fn(&ScanRaster) -> Option<Isometry3<f64>> + Sync,
         cell_m: f64,
+        stale: Stale,
     ) -> Moves {
         use rayon::prelude::*;
         let moved: Vec<(usize, ScanRaster)> = self
@@ -408,7 +433,7 @@ impl Ledger {
         let pairs: Vec<(&ScanRaster, &ScanRaster)> =
             moved.iter().map(|(k, new)| (&self.scans[*k], new)).collect();
         Moves {
-            edits: edits_of_moves(&pairs),
+            edits: edits_of_moves(&pairs, stale),
             moved,
         }
     }
@@ -527,7 +552,7 @@ mod tests {
         assert_eq!((ledger.len(), ledger.forgotten()), (3, 2));
         assert!(!ledger.contains(1, 1) && ledger.contains(1, 4));
         let shift = Isometry3::translation(1.0, 0.0, 0.0);
-        let plan = ledger.plan(|r| (r.sequence == 3).then_some(shift), CELL);
+        let plan = ledger.plan(|r| (r.sequence == 3).then_some(shift), CELL, &|_, _| false);
         assert_eq!(plan.moved.len(), 1);
         // The cells it left lose a scan, the ones it reached gain one.
         assert_eq!(plan.edits.get(&(-8, 0)).map(|e| e.scans), Some(-1));
@@ -535,7 +560,7 @@ mod tests {
         let bytes = ledger.bytes();
         ledger.commit(plan.moved);
         assert_eq!(ledger.bytes(), bytes);
-        let again = ledger.plan(|r| (r.sequence == 3).then_some(shift), CELL);
+        let again = ledger.plan(|r| (r.sequence == 3).then_some(shift), CELL, &|_, _| false);
         assert!(again.edits.values().all(|e| e.scans == 0), "already there");
     }
 }

@@ -8,6 +8,7 @@
 //! margin, so a tile holds a bounded number of points. A new scan refits only the tiles whose
 //! cells it changed. Predictions blend the covering tiles with a partition of unity (no seams).
 
+pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
 use super::{Aggregate, AggregateError};
 use crate::gp::{CholeskyError, JitterPolicy, Kernel};
@@ -45,6 +46,25 @@ pub struct WorldParams {
     /// sensor sees the ground at grazing angles (and the cells to visit grow as its square).
     /// The daemon may fuse a shorter reach to keep up with the sensor's rate.
     pub max_reach_m: f64,
+    /// Detect changes (moving objects): disagreeing evidence replaces cells instead of being
+    /// averaged in (off: every prediction is fused, as before issue 17). Off by default: under
+    /// odometry drift the map disagrees with itself where the robot returns, which looks like
+    /// change, and cells replaced then are not restored by a later pose correction
+    /// (docs/EVALUATION.md "World").
+    pub change_detection: bool,
+    /// A scan's height disagrees with a cell's when they differ by more than this many σ of
+    /// their difference (3.29: χ² with one degree of freedom at 99.9 %).
+    pub change_gate_sigmas: f64,
+    /// σ added (in quadrature) to every disagreement test, metres: the smoothing a range map
+    /// makes of edges and steps, which no single scan's σ includes; changes smaller than a few
+    /// times this are fused, not reported.
+    pub change_floor_m: f64,
+    /// Scans that must agree with each other, and not with the cell, before the cell is replaced
+    /// by them (one scan's bad prediction is not a change).
+    pub change_confirm_scans: u32,
+    /// Scans whose rays must pass below a measured cell's surface before it is cleared (a ray
+    /// that passed through where something stood is direct evidence it left).
+    pub clear_confirm_scans: u32,
 }
 
 impl Default for WorldParams {
@@ -59,19 +79,35 @@ impl Default for WorldParams {
             max_cell_sd_m: 0.1,
             max_gap_m: 0.75,
             max_reach_m: 10.0,
+            change_detection: false,
+            change_gate_sigmas: 3.29,
+            change_floor_m: 0.03,
+            change_confirm_scans: 2,
+            clear_confirm_scans: 1,
         }
     }
 }
 
-/// A fused cell: the height at its centre and its variance.
+/// Evidence that disagrees with a cell, waiting for confirmation by the next scans.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Challenger {
+    /// The disagreeing scans fused together.
+    cell: Cell,
+}
+
+/// A cell replaced because its new evidence disagreed with the old (a moved object, a change).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Cell {
-    /// Height, metres.
-    pub z: f64,
-    /// Variance, m².
-    pub var: f64,
-    /// Scans fused into it.
-    pub scans: u32,
+pub struct Change {
+    /// Cell index (column, row).
+    pub cell: (i32, i32),
+    /// The cell's centre, metres.
+    pub x_m: f64,
+    /// The cell's centre y, metres.
+    pub y_m: f64,
+    /// Height and variance before.
+    pub old: Cell,
+    /// Height and variance after.
+    pub new: Cell,
 }
 
 /// One scan folded into the aggregate: who sent it and when it was taken.
@@ -103,13 +139,16 @@ pub struct TilePage {
     pub noise_var: Vec<f64>,
 }
 
-/// What an insert did: the tiles it evicted and each scan's fused cells (for the ledger).
+/// What an insert did: the tiles it evicted, each scan's fused cells (for the ledger) and the
+/// cells it replaced.
 #[derive(Debug, Clone, Default)]
 pub struct Inserted {
     /// Tiles that left the radius (to be paged out).
     pub evicted: Vec<TilePage>,
     /// Each scan's fused cells, in the batch's order.
     pub fused: Vec<ScanRaster>,
+    /// Per scan of the batch (in order), the cells its evidence replaced.
+    pub changes: Vec<Vec<Change>>,
 }
 
 /// What [`WorldAggregate::apply_edits`] did, and the edits left for pages on disk.
@@ -194,6 +233,15 @@ pub struct WorldState {
 pub struct WorldAggregate {
     params: WorldParams,
     cells: HashMap<(i32, i32), Cell>,
+    // Disagreeing evidence per cell, until confirmed (then it replaces the cell) or contradicted.
+    challengers: HashMap<(i32, i32), Challenger>,
+    // The insert at which each replaced cell was replaced: older scans' evidence is gone from it.
+    replaced_at: HashMap<(i32, i32), u64>,
+    // Cells whose height the returns measured when they replaced it: a range map's smooth guess
+    // that disagrees with them is left out (it rounds off the object they hit).
+    measured: BTreeSet<(i32, i32)>,
+    // Measured cells rays passed below: scans so far.
+    carves: HashMap<(i32, i32), u32>,
     // Shared so that a published copy costs the cells and one pointer per tile.
     tiles: HashMap<(i32, i32), Arc<ElevationGp>>,
     refits: u64,
@@ -211,6 +259,10 @@ impl WorldAggregate {
         Self {
             params,
             cells: HashMap::new(),
+            challengers: HashMap::new(),
+            replaced_at: HashMap::new(),
+            measured: BTreeSet::new(),
+            carves: HashMap::new(),
             tiles: HashMap::new(),
             refits: 0,
             inserts: 0,
@@ -304,13 +356,17 @@ impl WorldAggregate {
                 .tiles
                 .keys()
                 .any(|&t| self.tile_distance(t, s.x, s.y) <= radius_m);
-        let fused = self.insert_all_within(batch, reach_m)?;
+        let (fused, changes) = self.insert_all_within(batch, reach_m)?;
         let evicted = if connected {
             self.evict_beyond(s.x, s.y, radius_m)
         } else {
             Vec::new()
         };
-        Ok(Inserted { evicted, fused })
+        Ok(Inserted {
+            evicted,
+            fused,
+            changes,
+        })
     }
 
     /// Folds every scan of `batch` in, in order, each out to `reach_m` of its sensor (at most
@@ -323,35 +379,80 @@ impl WorldAggregate {
         &mut self,
         batch: &[(&ScanInput, &LocalRangeMap)],
         reach_m: f64,
-    ) -> Result<Vec<ScanRaster>, AggregateError> {
+    ) -> Result<(Vec<ScanRaster>, Vec<Vec<Change>>), AggregateError> {
         let mut dirty = BTreeSet::new();
+        let mut changes = Vec::with_capacity(batch.len());
         let insert = self.history.back().map_or(0, |r| r.insert + 1);
         let reach_m = reach_m.min(self.params.max_reach_m);
         let mut fused = Vec::with_capacity(batch.len());
         for (scan, local) in batch {
-            let cells: Vec<FusedCell> = self
+            let cells: Vec<(FusedCell, bool)> = self
                 .predicted_cells(local, reach_m)
                 .into_iter()
                 // As the ledger keeps them, so that a correction takes out exactly what went in.
-                .map(|(c, e)| (c, e.z as f32, e.var as f32))
-                .filter(|&(_, _, var)| var > 0.0)
+                .map(|(c, e, observed)| ((c, e.z as f32, e.var as f32), observed))
+                .filter(|&((_, _, var), _)| var > 0.0)
                 .collect();
-            for &(c, z, var) in &cells {
-                let (z, var) = (z as f64, var as f64);
-                let cell = self.cells.entry(c).or_insert(Cell { z, var, scans: 0 });
-                if cell.scans > 0 {
-                    let fused_var = 1.0 / (1.0 / cell.var + 1.0 / var);
-                    cell.z = fused_var * (cell.z / cell.var + z / var);
-                    cell.var = fused_var;
+            let this = self.inserts;
+            let mut kept = Vec::with_capacity(cells.len());
+            let mut replaced = Vec::new();
+            // Rays that pass below a measured cell's surface: what stood there has left.
+            let watch = self.params.change_detection;
+            let carved = if watch {
+                self.carved(scan, local, reach_m)
+            } else {
+                BTreeSet::new()
+            };
+            let returns = if watch {
+                self.returns_by_cell(scan, local, reach_m)
+            } else {
+                Vec::new()
+            };
+            for c in carved {
+                if let Some(change) = self.clear(c, local, this) {
+                    replaced.push(change);
+                    dirty.extend(self.tiles_covering(c));
                 }
-                cell.scans += 1;
+            }
+            // The scan's own returns: where they disagree with a cell, something moved.
+            for (c, seen) in returns {
+                if let Some(change) = self.challenge(c, seen, this, true) {
+                    replaced.push(change);
+                    dirty.extend(self.tiles_covering(c));
+                }
+            }
+            // A replaced cell's whole evidence is this scan's (for the ledger); its prediction
+            // there is not fused again.
+            for change in &replaced {
+                if change.new.z.is_finite() {
+                    kept.push((change.cell, change.new.z as f32, change.new.var as f32));
+                }
+            }
+            let now_replaced: BTreeSet<(i32, i32)> = replaced.iter().map(|c| c.cell).collect();
+            for &((c, z, var), observed) in &cells {
+                if now_replaced.contains(&c) {
+                    continue;
+                }
+                let seen = Cell {
+                    z: z as f64,
+                    var: var as f64,
+                    scans: 1,
+                };
+                match self.fuse(c, seen, this, observed) {
+                    Fusion::Fused => kept.push((c, z, var)),
+                    Fusion::Challenged | Fusion::Doubted => continue,
+                    Fusion::Replaced(change) => replaced.push(change),
+                }
                 dirty.extend(self.tiles_covering(c));
             }
-            fused.push(ScanRaster::new(
+            let mut raster = ScanRaster::new(
                 (scan.publisher_id, scan.sequence, scan.stamp_ns),
                 *local.pose(),
-                &cells,
-            ));
+                &kept,
+            );
+            raster.insert = this;
+            fused.push(raster);
+            changes.push(replaced);
             self.inserts += 1;
             if self.history.len() == HISTORY_LEN {
                 self.history.pop_front();
@@ -365,7 +466,221 @@ impl WorldAggregate {
             });
         }
         self.refit(dirty)?;
-        Ok(fused)
+        Ok((fused, changes))
+    }
+
+    /// Folds one scan's height `seen` at cell `c` in (scan number `this`; `observed`: among the
+    /// scan's returns, not between them): fused by inverse variance when it agrees with the
+    /// cell; when it does not, held as a challenger if observed, else left out (a range map's
+    /// guess between its rings, or behind an object it just saw, is no evidence against what
+    /// other scans measured). A challenger confirmed by `change_confirm_scans` observed scans
+    /// that agree with each other replaces the cell; an observed scan that agrees with the cell
+    /// dismisses it.
+    fn fuse(&mut self, c: (i32, i32), seen: Cell, this: u64, observed: bool) -> Fusion {
+        let Some(cell) = self.cells.get(&c).copied() else {
+            self.cells.insert(c, seen);
+            return Fusion::Fused;
+        };
+        if !self.params.change_detection || self.agree(&cell, &seen) {
+            self.cells.insert(c, fused(cell, seen));
+            if observed {
+                self.challengers.remove(&c);
+            }
+            return Fusion::Fused;
+        }
+        if !observed || self.measured.contains(&c) {
+            return Fusion::Doubted;
+        }
+        match self.challenge(c, seen, this, false) {
+            Some(change) => Fusion::Replaced(change),
+            None => Fusion::Challenged,
+        }
+    }
+
+    /// Holds `seen` against cell `c` (the caller found them disagreeing, or for `measured`
+    /// returns, tests it here): scans that reject the cell on the same side confirm each other,
+    /// and `change_confirm_scans` of them replace it. Returns the change when they do.
+    fn challenge(&mut self, c: (i32, i32), seen: Cell, this: u64, measured: bool) -> Option<Change> {
+        let cell = self.cells.get(&c).copied()?;
+        if measured && self.agree(&cell, &seen) {
+            if self.measured.contains(&c) {
+                self.challengers.remove(&c);
+            }
+            return None;
+        }
+        let challenger = match self.challengers.get(&c) {
+            Some(ch) if (ch.cell.z - cell.z).signum() == (seen.z - cell.z).signum() => fused(ch.cell, seen),
+            _ => seen,
+        };
+        if challenger.scans < self.params.change_confirm_scans {
+            self.challengers.insert(c, Challenger { cell: challenger });
+            return None;
+        }
+        self.challengers.remove(&c);
+        // The earlier challengers confirmed it; the cell takes the confirming scan's own evidence,
+        // as its raster in the ledger keeps it (so that a pose correction moves it with that
+        // scan alone: the challengers may have been sent from other, differently wrong poses).
+        let challenger = f32_cell(seen);
+        self.cells.insert(c, challenger);
+        self.replaced_at.insert(c, this);
+        if measured {
+            self.measured.insert(c);
+        } else {
+            self.measured.remove(&c);
+        }
+        let (x_m, y_m) = self.centre(c);
+        Some(Change {
+            cell: c,
+            x_m,
+            y_m,
+            old: cell,
+            new: challenger,
+        })
+    }
+
+    /// The measured cells (see `measured`) that rays of the scan passed below, by a margin of
+    /// the gate: each ray walked from the sensor to its return, cell by cell (every other ray:
+    /// neighbouring rays cross the same cells).
+    fn carved(&self, scan: &ScanInput, local: &LocalRangeMap, reach_m: f64) -> BTreeSet<(i32, i32)> {
+        let mut carved = BTreeSet::new();
+        let (Some(lo), Some(hi)) = (self.measured.first(), self.measured.last()) else {
+            return carved;
+        };
+        let (jlo, jhi) = self
+            .measured
+            .iter()
+            .fold((i32::MAX, i32::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
+        let pose = local.pose();
+        let s = pose.translation.vector;
+        let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
+        let step = 0.5 * self.params.cell_m;
+        for r in scan.rays.iter().step_by(2) {
+            let (si, ci) = r.inclination.sin_cos();
+            let (sa, ca) = r.azimuth.sin_cos();
+            let d = pose.rotation * Vector3::new(si * ca, si * sa, ci);
+            let flat = d.xy().norm();
+            if flat < 1e-6 {
+                continue;
+            }
+            // Up to the cell before the return's (the return's own cell holds what it hit).
+            let end = (r.range - self.params.cell_m / flat).min(reach / flat);
+            let mut t = step / flat;
+            while t < end {
+                let p = s + d * t;
+                let c = self.cell_of(p.x, p.y);
+                if c >= *lo && c <= *hi && (jlo..=jhi).contains(&c.1) && self.measured.contains(&c) {
+                    if let Some(cell) = self.cells.get(&c) {
+                        let margin = CLEAR_MARGIN_M + 2.0 * cell.var.sqrt();
+                        if p.z < cell.z - margin {
+                            carved.insert(c);
+                        }
+                    }
+                }
+                t += step / flat;
+            }
+        }
+        carved
+    }
+
+    /// A measured cell that a scan's rays passed below: once `change_confirm_scans` scans have,
+    /// it takes the scan's own height there (or leaves the map where the scan has none).
+    fn clear(&mut self, c: (i32, i32), local: &LocalRangeMap, this: u64) -> Option<Change> {
+        let cell = self.cells.get(&c).copied()?;
+        let (x_m, y_m) = self.centre(c);
+        let now = local
+            .elevation(x_m, y_m)
+            .filter(|e| e.var > 0.0 && e.var <= self.params.max_cell_sd_m.powi(2))
+            .map(|e| Cell {
+                z: e.z as f32 as f64,
+                var: e.var as f32 as f64,
+                scans: 1,
+            });
+        let scans = self.carves.get(&c).copied().unwrap_or(0);
+        if scans + 1 < self.params.clear_confirm_scans {
+            self.carves.insert(c, scans + 1);
+            return None;
+        }
+        let height = now;
+        self.carves.remove(&c);
+        self.challengers.remove(&c);
+        self.measured.remove(&c);
+        self.replaced_at.insert(c, this);
+        let new = match height {
+            Some(h) => {
+                let h = f32_cell(h);
+                self.cells.insert(c, h);
+                h
+            }
+            None => {
+                self.cells.remove(&c);
+                Cell {
+                    z: f64::NEG_INFINITY,
+                    var: cell.var,
+                    scans: 0,
+                }
+            }
+        };
+        Some(Change {
+            cell: c,
+            x_m,
+            y_m,
+            old: cell,
+            new,
+        })
+    }
+
+    /// The scan's returns within `reach_m` binned by cell, where a cell holds at least two: the
+    /// highest (a 2.5-D map's surface is the top of what stands there) with the mean of their
+    /// range variances.
+    fn returns_by_cell(
+        &self,
+        scan: &ScanInput,
+        local: &LocalRangeMap,
+        reach_m: f64,
+    ) -> Vec<((i32, i32), Cell)> {
+        let pose = local.pose();
+        let s = pose.translation.vector;
+        let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
+        let mut bins: HashMap<(i32, i32), (u32, f64, f64)> = HashMap::new();
+        for r in &scan.rays {
+            let (si, ci) = r.inclination.sin_cos();
+            let (sa, ca) = r.azimuth.sin_cos();
+            let p = pose * nalgebra::Point3::new(si * ca * r.range, si * sa * r.range, ci * r.range);
+            if (p.x - s.x).hypot(p.y - s.y) >= reach {
+                continue;
+            }
+            let sd = scan.range_noise_per_m * r.range;
+            let bin = bins
+                .entry(self.cell_of(p.x, p.y))
+                .or_insert((0, f64::NEG_INFINITY, 0.0));
+            *bin = (bin.0 + 1, bin.1.max(p.z), bin.2 + sd * sd);
+        }
+        bins.into_iter()
+            .filter(|(_, (n, _, _))| *n >= 2)
+            .map(|(c, (n, z, var))| {
+                (
+                    c,
+                    Cell {
+                        z,
+                        var: (var / n as f64).max(1e-8),
+                        scans: 1,
+                    },
+                )
+            })
+            .collect()
+    }
+
+    /// Whether two heights agree within the change gate.
+    fn agree(&self, a: &Cell, b: &Cell) -> bool {
+        let p = &self.params;
+        let var = a.var + b.var + p.change_floor_m * p.change_floor_m;
+        (a.z - b.z).powi(2) <= p.change_gate_sigmas * p.change_gate_sigmas * var
+    }
+
+    /// The insert at which cell `c` was last replaced by a change (older scans' evidence is no
+    /// longer in it).
+    pub fn replaced_at(&self, c: (i32, i32)) -> Option<u64> {
+        self.replaced_at.get(&c).copied()
     }
 
     /// Applies cell edits (a pose correction's): cells whose tile is in memory, or on no page
@@ -410,7 +725,11 @@ impl WorldAggregate {
     /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
     /// sensor whose height it predicts surely enough to fuse (σ ≤ `max_cell_sd_m`), in parallel
     /// on the current rayon pool.
-    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<((i32, i32), HeightEstimate)> {
+    fn predicted_cells(
+        &self,
+        local: &LocalRangeMap,
+        reach_m: f64,
+    ) -> Vec<((i32, i32), HeightEstimate, bool)> {
         let s = local.sensor_position();
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
         let (lo, hi) = (
@@ -428,10 +747,11 @@ impl WorldAggregate {
                 if (x - s.x).hypot(y - s.y) >= reach {
                     return None;
                 }
-                local
+                let e = local
                     .elevation(x, y)
-                    .filter(|e| e.var <= max_var && e.var > 0.0)
-                    .map(|e| (c, e))
+                    .filter(|e| e.var <= max_var && e.var > 0.0)?;
+                let observed = local.provenance(&Vector3::new(x, y, e.z)) == Provenance::Observed;
+                Some((c, e, observed))
             })
             .collect()
     }
@@ -489,6 +809,11 @@ impl WorldAggregate {
                 None => true,
             }
         });
+        let cells = &self.cells;
+        self.challengers.retain(|c, _| cells.contains_key(c));
+        self.replaced_at.retain(|c, _| cells.contains_key(c));
+        self.measured.retain(|c| cells.contains_key(c));
+        self.carves.retain(|c, _| cells.contains_key(c));
         let mut pages: Vec<TilePage> = pages.into_values().collect();
         for page in &mut pages {
             page.cells.sort_by_key(|&(k, _)| k);
@@ -734,6 +1059,42 @@ impl WorldAggregate {
 /// leave-one-out residuals (fused cells whose neighbours disagree with them more than their
 /// variances allow widen σ around themselves: rough ground, steps, and scans whose errors were
 /// fused as if independent).
+/// What folding a scan's height into a cell did.
+enum Fusion {
+    /// Fused with the cell (or made it).
+    Fused,
+    /// Held against the cell, awaiting confirmation.
+    Challenged,
+    /// Disagreed with the cell without being observed: left out.
+    Doubted,
+    /// Replaced the cell.
+    Replaced(Change),
+}
+
+/// A ray clears a measured cell when it passes this far below its surface, plus 2 σ of it,
+/// metres (less than the change gate: a ray is a line, not a guess, and a cell's returns are its
+/// highest).
+const CLEAR_MARGIN_M: f64 = 0.1;
+
+/// A cell as the ledger keeps heights (f32), so that a correction takes out exactly this.
+fn f32_cell(c: Cell) -> Cell {
+    Cell {
+        z: c.z as f32 as f64,
+        var: c.var as f32 as f64,
+        scans: c.scans,
+    }
+}
+
+/// Two heights fused by inverse variance.
+fn fused(a: Cell, b: Cell) -> Cell {
+    let var = 1.0 / (1.0 / a.var + 1.0 / b.var);
+    Cell {
+        z: var * (a.z / a.var + b.z / b.var),
+        var,
+        scans: a.scans + b.scans,
+    }
+}
+
 fn fit_tile(points: &[[f64; 3]], noise_var: &[f64], kernel: Kernel) -> Result<ElevationGp, CholeskyError> {
     let mut gp = ElevationGp::fit(points, noise_var, kernel, JitterPolicy::default())?;
     gp.widen_locally();
@@ -978,7 +1339,7 @@ mod tests {
             scan.pose = *s;
             scan.sequence = k as u64;
             let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
-            for raster in agg.insert_all_within(&[(&scan, &local)], 8.0).expect("insert") {
+            for raster in agg.insert_all_within(&[(&scan, &local)], 8.0).expect("insert").0 {
                 ledger.push(raster);
             }
         }
@@ -1025,7 +1386,7 @@ mod tests {
         let (right, _) = fused_with(&terrain, &truth, &truth);
         let (mut wrong, mut ledger) = fused_with(&terrain, &truth, &drifted);
         let (before, _) = cell_rms(&right, &wrong);
-        let plan = ledger.plan(|r| Some(truth[r.sequence as usize]), 0.25);
+        let plan = ledger.plan(|r| Some(truth[r.sequence as usize]), 0.25, &|_, _| false);
         assert_eq!(plan.moved.len(), 4);
         // A copy of the drifted map on disk, to be corrected page by page.
         let mut on_disk = wrong.clone();
