@@ -750,7 +750,9 @@ impl WorldAggregate {
                 let e = local
                     .elevation(x, y)
                     .filter(|e| e.var <= max_var && e.var > 0.0)?;
-                let observed = local.provenance(&Vector3::new(x, y, e.z)) == Provenance::Observed;
+                // Only the change test asks (an O(n) search over the covering experts' inputs).
+                let observed = self.params.change_detection
+                    && local.provenance(&Vector3::new(x, y, e.z)) == Provenance::Observed;
                 Some((c, e, observed))
             })
             .collect()
