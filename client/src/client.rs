@@ -324,19 +324,7 @@ impl Client {
         &self,
         on_update: impl Fn(MapUpdate) + Send + Sync + 'static,
     ) -> Result<zenoh::pubsub::Subscriber<()>, ClientError> {
-        self.session
-            .declare_subscriber(self.keys.map_updates())
-            .callback(move |sample| {
-                let bytes = sample.payload().to_bytes();
-                if let Ok(update) = codec::decode::<MapUpdate>(Encoding::Bincode, &bytes) {
-                    on_update(update);
-                }
-            })
-            .wait()
-            .map_err(|source| ClientError::Transport {
-                action: "declare a subscriber",
-                source,
-            })
+        self.subscribe(self.keys.map_updates(), on_update)
     }
 
     /// Calls `on_change` with every [`ChangeEvent`] the daemon publishes (aggregate cells
@@ -346,12 +334,22 @@ impl Client {
         &self,
         on_change: impl Fn(ChangeEvent) + Send + Sync + 'static,
     ) -> Result<zenoh::pubsub::Subscriber<()>, ClientError> {
+        self.subscribe(self.keys.changes(), on_change)
+    }
+
+    /// Calls `on_event` with every event of type `T` published (bincode) on `key`; samples that
+    /// do not decode (another protocol version) are skipped.
+    fn subscribe<T: DeserializeOwned>(
+        &self,
+        key: String,
+        on_event: impl Fn(T) + Send + Sync + 'static,
+    ) -> Result<zenoh::pubsub::Subscriber<()>, ClientError> {
         self.session
-            .declare_subscriber(self.keys.changes())
+            .declare_subscriber(key)
             .callback(move |sample| {
                 let bytes = sample.payload().to_bytes();
-                if let Ok(event) = codec::decode::<ChangeEvent>(Encoding::Bincode, &bytes) {
-                    on_change(event);
+                if let Ok(event) = codec::decode::<T>(Encoding::Bincode, &bytes) {
+                    on_event(event);
                 }
             })
             .wait()

@@ -108,6 +108,21 @@ impl Harness {
     }
 }
 
+/// 20 points in front of each (sensor pose, heading), 3.5–7.5 m away over ±70°: inside the
+/// seed-000 scanner's field of view.
+pub fn points_ahead(poses: &[(nalgebra::Isometry3<f64>, f64)]) -> Vec<[f64; 2]> {
+    let mut points = Vec::with_capacity(20 * poses.len());
+    for (pose, heading) in poses {
+        let s = pose.translation.vector;
+        for k in 0..20 {
+            let az = heading + (-70.0 + 7.0 * k as f64).to_radians();
+            let rho = 3.5 + (k % 5) as f64;
+            points.push([s.x + rho * az.cos(), s.y + rho * az.sin()]);
+        }
+    }
+    points
+}
+
 /// The seed-000 world used by the tests: 60 m cratered terrain, scans 1 m apart.
 pub fn world(seed: u64, scans: usize) -> ScanGenerator {
     ScanGenerator::new(seed, 60.0, ScannerPreset::seed000(), scans, 1.0)

@@ -4,7 +4,7 @@
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{ErrorCode, PoseCorrection, Rigid, Source};
-use rangegp_tests::{error_code, rms, world, Harness};
+use rangegp_tests::{error_code, points_ahead, rms, world, Harness};
 
 fn wire(t: &Isometry3<f64>) -> Rigid {
     let q = t.rotation;
@@ -37,15 +37,7 @@ fn a_loop_closure_moves_window_and_aggregate_onto_the_true_poses() -> anyhow::Re
         poses.push((scan.pose, w.path.waypoints[i][2]));
     }
     h.wait_status("5 scans fused", |s| s.aggregate.inserts == 5)?;
-    let mut points = Vec::new();
-    for (pose, heading) in &poses {
-        let s = pose.translation.vector;
-        for k in 0..20 {
-            let az = heading + (-70.0 + 7.0 * k as f64).to_radians();
-            let rho = 3.5 + (k % 5) as f64;
-            points.push([s.x + rho * az.cos(), s.y + rho * az.sin()]);
-        }
-    }
+    let points = points_ahead(&poses);
     // RMSE and count of the answers from `source`.
     let errors = |h: &Harness, source: Source| -> anyhow::Result<(f64, usize)> {
         let items = h.client.elevation(&points)?;

@@ -3,7 +3,7 @@
 use nalgebra::Vector3;
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{Provenance, Ray, Source};
-use rangegp_tests::{rms, world, Harness};
+use rangegp_tests::{points_ahead, rms, world, Harness};
 
 #[test]
 fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
@@ -21,15 +21,7 @@ fn five_scans_in_elevation_out_matches_ground_truth() -> anyhow::Result<()> {
     assert_eq!(status.window_len, 5);
 
     // Points in front of each pose, inside the scanner's field of view.
-    let mut points = Vec::new();
-    for (pose, heading) in &poses {
-        let s = pose.translation.vector;
-        for k in 0..20 {
-            let az = heading + (-70.0 + 7.0 * k as f64).to_radians();
-            let rho = 3.5 + (k % 5) as f64;
-            points.push([s.x + rho * az.cos(), s.y + rho * az.sin()]);
-        }
-    }
+    let points = points_ahead(&poses);
     let items = h.client.elevation(&points)?;
     let (mut errors, mut observed) = (Vec::new(), 0);
     for (p, item) in points.iter().zip(&items) {

@@ -12,15 +12,12 @@ use crate::priority::{lower_current_thread, Background};
 use crate::scan::ScanInput;
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
-use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::{ChangeEvent, ChangedCell};
 use rangegp_proto::PROTOCOL_VERSION;
-use rangegp_transport::zenoh_encoding;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
-use zenoh::Wait;
 
 /// How far from its sensor each scan is fused, so that fusing keeps up with the sensor on a
 /// share of one core: the cost of a scan grows as the square of its reach, so with c the
@@ -216,18 +213,7 @@ fn announce_changes(
             })
             .collect(),
     };
-    match codec::encode(Encoding::Bincode, &event) {
-        Ok(bytes) => {
-            if let Err(e) = publisher
-                .put(bytes)
-                .encoding(zenoh_encoding(Encoding::Bincode))
-                .wait()
-            {
-                debug!(error = %e, "change event not published");
-            }
-        }
-        Err(e) => warn!(error = %e, "cannot encode a change event"),
-    }
+    super::publish_event(publisher, &event, "change event");
 }
 
 /// Brings back the tiles on disk within `radius_m` of `at` that `world` does not hold, before

@@ -3,7 +3,7 @@
 //! the same correction in one snapshot swap.
 
 use crate::checkpoint::{PageError, PageStore};
-use crate::map::aggregate::ledger::{Ledger, ScanRaster};
+use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::WorldAggregate;
 use crate::map::aggregate::AggregateError;
 use crate::map::correction::{Correction, ScanId};
@@ -66,14 +66,6 @@ pub(super) fn apply_waiting(
     }
 }
 
-fn scan_id(r: &ScanRaster) -> ScanId {
-    ScanId {
-        publisher_id: r.publisher_id,
-        sequence: r.sequence,
-        stamp_ns: r.stamp_ns,
-    }
-}
-
 /// What correcting the aggregate did ([`correct_aggregate`]).
 #[derive(Debug)]
 pub struct AggregateCorrection {
@@ -103,18 +95,11 @@ pub fn correct_aggregate(
     c: &Correction,
 ) -> Result<AggregateCorrection, AggregateError> {
     let stale = |cell, insert| world.replaced_at(cell).is_some_and(|at| at > insert);
-    let plan = ledger.plan(|r| c.apply(scan_id(r), &r.pose), world.params().cell_m, &stale);
+    let plan = ledger.plan(|r| c.apply(r.into(), &r.pose), world.params().cell_m, &stale);
     let ids = ledger.ids();
     let not_correctable = world
         .history()
-        .filter(|r| {
-            !ids.contains(&(r.publisher_id, r.sequence))
-                && c.names(ScanId {
-                    publisher_id: r.publisher_id,
-                    sequence: r.sequence,
-                    stamp_ns: r.stamp_ns,
-                })
-        })
+        .filter(|r| !ids.contains(&(r.publisher_id, r.sequence)) && c.names(ScanId::from(*r)))
         .count();
     let mut next = WorldAggregate::clone(world);
     let on_disk = pages.as_ref().map(|s| s.keys().clone()).unwrap_or_default();
@@ -189,25 +174,14 @@ fn apply(
         .fetch_add(u64::from(corrected.page_failures), Relaxed);
     *world = Arc::new(corrected.world);
     generation.0 = g;
-    let window_maps_moved = state
-        .snapshot
-        .load()
-        .maps()
-        .iter()
-        .filter(|m| {
-            c.names(ScanId {
-                publisher_id: m.publisher_id,
-                sequence: m.sequence,
-                stamp_ns: m.stamp_ns,
-            })
-        })
-        .count();
-    {
+    // The window the correction was applied to: the snapshot it replaced.
+    let window_maps_moved = {
         let log = lock();
-        state
+        let old = state
             .snapshot
             .rcu(|old| old.with_aggregate(Some(Arc::clone(world))).brought_up(&log, g));
-    }
+        c.maps_named(old.maps())
+    };
     m.corrections.fetch_add(1, Relaxed);
     m.ledger_bytes.store(kept.ledger.bytes() as u64, Relaxed);
     let reply = CorrectionReply {

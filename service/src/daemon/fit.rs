@@ -9,15 +9,12 @@ use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::scan::{RejectReason, ScanInput};
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
-use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::msg::MapUpdate;
 use rangegp_proto::PROTOCOL_VERSION;
-use rangegp_transport::zenoh_encoding;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, PoisonError};
 use std::time::{Duration, Instant};
 use tracing::{debug, info_span, warn};
-use zenoh::Wait;
 
 /// Where the fitter sends what it made, besides the window.
 pub(super) struct FitOutputs {
@@ -76,9 +73,9 @@ pub(super) fn fit_loop(
         window.push(Arc::clone(&map));
         // Every map as moved by the corrections the published aggregate reflects, so that no
         // query sees a half-corrected map.
-        let maps = {
+        {
             let log = lock();
-            let published = state.snapshot.rcu(|old| {
+            state.snapshot.rcu(|old| {
                 window.bring_up(&log, old.generation);
                 window
                     .snapshot()
@@ -87,15 +84,14 @@ pub(super) fn fit_loop(
                     .with_max_sigma(before.max_sigma_m)
                     .with_generation(old.generation)
             });
-            window.bring_up(&log, published.generation);
-            window.snapshot()
-        };
-        let map = maps.maps().first().map_or(map, Arc::clone);
+        }
+        // As published: moved by any correction the window was just brought up to.
+        let map = window.newest().map_or(map, Arc::clone);
         let latency = received.elapsed();
         m.fit.record(fitted);
         m.scan_to_queryable.record(latency);
         m.accepted.fetch_add(1, Ordering::Relaxed);
-        announce(&outputs.updates, &scan, latency, maps.maps().len());
+        announce(&outputs.updates, &scan, latency, window.len());
         if let Some((samples, subset)) = &outputs.learner {
             samples.push(hyper_sample(&scan, &params, *subset));
         }
@@ -134,16 +130,5 @@ fn announce(
         latency_ms: latency.as_secs_f64() * 1e3,
         window_len: window_len as u32,
     };
-    match codec::encode(Encoding::Bincode, &event) {
-        Ok(bytes) => {
-            if let Err(e) = updates
-                .put(bytes)
-                .encoding(zenoh_encoding(Encoding::Bincode))
-                .wait()
-            {
-                debug!(error = %e, "map update not published");
-            }
-        }
-        Err(e) => warn!(error = %e, "cannot encode a map update"),
-    }
+    super::publish_event(updates, &event, "map update");
 }

@@ -432,3 +432,16 @@ impl Drop for Daemon {
         self.stop();
     }
 }
+/// Publishes an event (bincode) on `publisher`; a failure is logged, never propagated (events
+/// are advice: the maps answer queries either way).
+fn publish_event<T: serde::Serialize>(publisher: &zenoh::pubsub::Publisher<'static>, event: &T, what: &str) {
+    match rangegp_proto::codec::encode(rangegp_proto::codec::Encoding::Bincode, event) {
+        Ok(bytes) => {
+            let encoding = rangegp_transport::zenoh_encoding(rangegp_proto::codec::Encoding::Bincode);
+            if let Err(e) = publisher.put(bytes).encoding(encoding).wait() {
+                tracing::debug!(error = %e, "{what} not published");
+            }
+        }
+        Err(e) => warn!(error = %e, "cannot encode a {what}"),
+    }
+}

@@ -6,6 +6,8 @@
 //! the snapshot's generation first, so a query never sees window maps and an aggregate that
 //! disagree about a correction.
 
+use super::aggregate::ledger::ScanRaster;
+use super::aggregate::world::ScanRef;
 use super::LocalRangeMap;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use rangegp_proto::msg::{CorrectionRequest, PoseCorrection, Rigid};
@@ -55,6 +57,36 @@ pub struct ScanId {
     pub sequence: u64,
     /// Acquisition time, ns.
     pub stamp_ns: u64,
+}
+
+impl From<&LocalRangeMap> for ScanId {
+    fn from(m: &LocalRangeMap) -> Self {
+        Self {
+            publisher_id: m.publisher_id,
+            sequence: m.sequence,
+            stamp_ns: m.stamp_ns,
+        }
+    }
+}
+
+impl From<&ScanRaster> for ScanId {
+    fn from(r: &ScanRaster) -> Self {
+        Self {
+            publisher_id: r.publisher_id,
+            sequence: r.sequence,
+            stamp_ns: r.stamp_ns,
+        }
+    }
+}
+
+impl From<&ScanRef> for ScanId {
+    fn from(r: &ScanRef) -> Self {
+        Self {
+            publisher_id: r.publisher_id,
+            sequence: r.sequence,
+            stamp_ns: r.stamp_ns,
+        }
+    }
 }
 
 /// A transform over a stamp range (validated).
@@ -176,6 +208,11 @@ impl Correction {
     pub fn names(&self, id: ScanId) -> bool {
         self.apply(id, &Isometry3::identity()).is_some()
     }
+
+    /// How many of `maps` the correction names.
+    pub fn maps_named(&self, maps: &[Arc<LocalRangeMap>]) -> usize {
+        maps.iter().filter(|m| self.names(m.as_ref().into())).count()
+    }
 }
 
 /// One step of a correction.
@@ -236,11 +273,7 @@ impl CorrectionLog {
         if map.generation() >= to {
             return Arc::clone(map);
         }
-        let id = ScanId {
-            publisher_id: map.publisher_id,
-            sequence: map.sequence,
-            stamp_ns: map.stamp_ns,
-        };
+        let id = ScanId::from(map.as_ref());
         let pose = self
             .entries
             .iter()

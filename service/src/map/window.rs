@@ -32,6 +32,11 @@ impl Window {
         self.maps.push_front(map);
     }
 
+    /// The newest map.
+    pub fn newest(&self) -> Option<&Arc<LocalRangeMap>> {
+        self.maps.front()
+    }
+
     /// Maps held now.
     pub fn len(&self) -> usize {
         self.maps.len()

@@ -1,7 +1,7 @@
 //! The query worker's side of a pose correction: validate it, hand it to the aggregate thread
 //! and wait (bounded) for the outcome, or, without an aggregate, move the window's maps here.
 
-use crate::map::correction::{Correction, InvalidCorrection, ScanId};
+use crate::map::correction::{Correction, InvalidCorrection};
 use crate::state::{CorrectionJob, DaemonState, CORRECTIONS_WAITING};
 use rangegp_proto::msg::{CorrectionReply, CorrectionRequest};
 use rangegp_proto::PROTOCOL_VERSION;
@@ -68,17 +68,7 @@ fn window_only(state: &DaemonState, correction: Arc<Correction>, arrived: Instan
         .unwrap_or_else(PoisonError::into_inner);
     let g = log.push(Arc::clone(&correction), arrived);
     let old = state.snapshot.rcu(|old| old.brought_up(&log, g));
-    let moved = old
-        .maps()
-        .iter()
-        .filter(|m| {
-            correction.names(ScanId {
-                publisher_id: m.publisher_id,
-                sequence: m.sequence,
-                stamp_ns: m.stamp_ns,
-            })
-        })
-        .count();
+    let moved = correction.maps_named(old.maps());
     state.metrics.corrections.fetch_add(1, Relaxed);
     CorrectionReply {
         version: PROTOCOL_VERSION,

@@ -62,9 +62,6 @@ pub struct WorldParams {
     /// Scans that must agree with each other, and not with the cell, before the cell is replaced
     /// by them (one scan's bad prediction is not a change).
     pub change_confirm_scans: u32,
-    /// Scans whose rays must pass below a measured cell's surface before it is cleared (a ray
-    /// that passed through where something stood is direct evidence it left).
-    pub clear_confirm_scans: u32,
 }
 
 impl Default for WorldParams {
@@ -83,16 +80,8 @@ impl Default for WorldParams {
             change_gate_sigmas: 3.29,
             change_floor_m: 0.03,
             change_confirm_scans: 2,
-            clear_confirm_scans: 1,
         }
     }
-}
-
-/// Evidence that disagrees with a cell, waiting for confirmation by the next scans.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Challenger {
-    /// The disagreeing scans fused together.
-    cell: Cell,
 }
 
 /// A cell replaced because its new evidence disagreed with the old (a moved object, a change).
@@ -233,15 +222,14 @@ pub struct WorldState {
 pub struct WorldAggregate {
     params: WorldParams,
     cells: HashMap<(i32, i32), Cell>,
-    // Disagreeing evidence per cell, until confirmed (then it replaces the cell) or contradicted.
-    challengers: HashMap<(i32, i32), Challenger>,
+    // Disagreeing evidence per cell (the scans fused together), until confirmed (then it replaces
+    // the cell) or contradicted.
+    challengers: HashMap<(i32, i32), Cell>,
     // The insert at which each replaced cell was replaced: older scans' evidence is gone from it.
     replaced_at: HashMap<(i32, i32), u64>,
     // Cells whose height the returns measured when they replaced it: a range map's smooth guess
     // that disagrees with them is left out (it rounds off the object they hit).
     measured: BTreeSet<(i32, i32)>,
-    // Measured cells rays passed below: scans so far.
-    carves: HashMap<(i32, i32), u32>,
     // Shared so that a published copy costs the cells and one pointer per tile.
     tiles: HashMap<(i32, i32), Arc<ElevationGp>>,
     refits: u64,
@@ -262,7 +250,6 @@ impl WorldAggregate {
             challengers: HashMap::new(),
             replaced_at: HashMap::new(),
             measured: BTreeSet::new(),
-            carves: HashMap::new(),
             tiles: HashMap::new(),
             refits: 0,
             inserts: 0,
@@ -509,11 +496,11 @@ impl WorldAggregate {
             return None;
         }
         let challenger = match self.challengers.get(&c) {
-            Some(ch) if (ch.cell.z - cell.z).signum() == (seen.z - cell.z).signum() => fused(ch.cell, seen),
+            Some(ch) if (ch.z - cell.z).signum() == (seen.z - cell.z).signum() => fused(*ch, seen),
             _ => seen,
         };
         if challenger.scans < self.params.change_confirm_scans {
-            self.challengers.insert(c, Challenger { cell: challenger });
+            self.challengers.insert(c, challenger);
             return None;
         }
         self.challengers.remove(&c);
@@ -582,32 +569,27 @@ impl WorldAggregate {
         carved
     }
 
-    /// A measured cell that a scan's rays passed below: once `change_confirm_scans` scans have,
-    /// it takes the scan's own height there (or leaves the map where the scan has none).
+    /// A measured cell that a scan's rays passed below (one scan is enough: a ray went through
+    /// where something stood) takes the scan's own height there, or leaves the map where the
+    /// scan has none.
     fn clear(&mut self, c: (i32, i32), local: &LocalRangeMap, this: u64) -> Option<Change> {
         let cell = self.cells.get(&c).copied()?;
         let (x_m, y_m) = self.centre(c);
-        let now = local
+        let height = local
             .elevation(x_m, y_m)
             .filter(|e| e.var > 0.0 && e.var <= self.params.max_cell_sd_m.powi(2))
-            .map(|e| Cell {
-                z: e.z as f32 as f64,
-                var: e.var as f32 as f64,
-                scans: 1,
+            .map(|e| {
+                f32_cell(Cell {
+                    z: e.z,
+                    var: e.var,
+                    scans: 1,
+                })
             });
-        let scans = self.carves.get(&c).copied().unwrap_or(0);
-        if scans + 1 < self.params.clear_confirm_scans {
-            self.carves.insert(c, scans + 1);
-            return None;
-        }
-        let height = now;
-        self.carves.remove(&c);
         self.challengers.remove(&c);
         self.measured.remove(&c);
         self.replaced_at.insert(c, this);
         let new = match height {
             Some(h) => {
-                let h = f32_cell(h);
                 self.cells.insert(c, h);
                 h
             }
@@ -815,7 +797,6 @@ impl WorldAggregate {
         self.challengers.retain(|c, _| cells.contains_key(c));
         self.replaced_at.retain(|c, _| cells.contains_key(c));
         self.measured.retain(|c| cells.contains_key(c));
-        self.carves.retain(|c, _| cells.contains_key(c));
         let mut pages: Vec<TilePage> = pages.into_values().collect();
         for page in &mut pages {
             page.cells.sort_by_key(|&(k, _)| k);
@@ -1057,10 +1038,6 @@ impl WorldAggregate {
     }
 }
 
-/// One tile's expert: fitted to its cells, then its variance scaled locally by its own
-/// leave-one-out residuals (fused cells whose neighbours disagree with them more than their
-/// variances allow widen σ around themselves: rough ground, steps, and scans whose errors were
-/// fused as if independent).
 /// What folding a scan's height into a cell did.
 enum Fusion {
     /// Fused with the cell (or made it).
@@ -1097,6 +1074,10 @@ fn fused(a: Cell, b: Cell) -> Cell {
     }
 }
 
+/// One tile's expert: fitted to its cells, then its variance scaled locally by its own
+/// leave-one-out residuals (fused cells whose neighbours disagree with them more than their
+/// variances allow widen σ around themselves: rough ground, steps, and scans whose errors were
+/// fused as if independent).
 fn fit_tile(points: &[[f64; 3]], noise_var: &[f64], kernel: Kernel) -> Result<ElevationGp, CholeskyError> {
     let mut gp = ElevationGp::fit(points, noise_var, kernel, JitterPolicy::default())?;
     gp.widen_locally();
