@@ -223,19 +223,44 @@ impl Client {
         max_m: [f64; 2],
         resolution_m: f64,
     ) -> Result<GridReply, ClientError> {
-        let req = GridRequest {
+        self.grid_request(&GridRequest {
             version: PROTOCOL_VERSION,
             min_m,
             max_m,
             resolution_m,
-        };
-        let rep: GridReply = self.call(&self.keys.query(QueryKind::Grid), &req)?;
+            layers: Vec::new(),
+            robot: None,
+        })
+    }
+
+    /// A grid with the planner layers `req.layers` (slope, σ, roughness, step, risk, cost) for
+    /// `req.robot` (or the daemon's robot); the resolution must not exceed the footprint radius.
+    pub fn grid_request(&self, req: &GridRequest) -> Result<GridReply, ClientError> {
+        let rep: GridReply = self.call(&self.keys.query(QueryKind::Grid), req)?;
         let cells = rep.cols as usize * rep.rows as usize;
-        for got in [rep.elevation_m.len(), rep.variance_m2.len()] {
+        let costmap = req.layers.contains(&Layer::Cost).then_some(rep.costmap.len());
+        let lens = [rep.elevation_m.len(), rep.variance_m2.len()]
+            .into_iter()
+            .chain(rep.layers.iter().map(|l| l.values.len()))
+            .chain(costmap);
+        for got in lens {
             if got != cells {
                 return Err(ClientError::BatchMismatch { sent: cells, got });
             }
         }
+        Ok(rep)
+    }
+
+    /// Slope, its σ, aspect, normal and slope risk at map (x, y) points, over the footprint of
+    /// `robot` (or the daemon's robot).
+    pub fn slope(&self, points: &[[f64; 2]], robot: Option<RobotModel>) -> Result<SlopeReply, ClientError> {
+        let req = SlopeRequest {
+            version: PROTOCOL_VERSION,
+            points: points.to_vec(),
+            robot,
+        };
+        let mut rep: SlopeReply = self.call(&self.keys.query(QueryKind::Slope), &req)?;
+        rep.items = check_len(points.len(), rep.items)?;
         Ok(rep)
     }
 

@@ -283,6 +283,56 @@ impl<'a> Heatmap<'a> {
     }
 }
 
+/// A reliability diagram: the observed frequency of an event against the probability predicted
+/// for it, one point per bin (its size written beside it), with the diagonal of perfect
+/// calibration; `title` names what was predicted.
+pub fn reliability_chart(file: &Path, title: &str, bins: &[(f64, f64, usize)]) -> Result<(), PlotError> {
+    static FONT: Once = Once::new();
+    FONT.call_once(|| {
+        let _ = register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+    let (w, h) = (640u32, 560u32);
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    draw_reliability(&mut buf, (w, h), title, bins).map_err(PlotError::Draw)?;
+    let img = image::RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| PlotError::Draw("picture buffer of the wrong size".into()))?;
+    img.save(file)?;
+    Ok(())
+}
+
+fn draw_reliability(
+    buf: &mut [u8],
+    size: (u32, u32),
+    title: &str,
+    bins: &[(f64, f64, usize)],
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let root = BitMapBackend::with_buffer(buf, size).into_drawing_area();
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 18))
+        .margin(20)
+        .x_label_area_size(50)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
+    chart
+        .configure_mesh()
+        .x_desc("predicted probability")
+        .y_desc("observed frequency")
+        .label_style(("sans-serif", 13))
+        .axis_desc_style(("sans-serif", 15))
+        .draw()?;
+    chart.draw_series(LineSeries::new([(0.0, 0.0), (1.0, 1.0)], BLACK.stroke_width(1)))?;
+    chart.draw_series(LineSeries::new(
+        bins.iter().map(|&(p, f, _)| (p, f)),
+        BLUE.stroke_width(2),
+    ))?;
+    chart.draw_series(bins.iter().map(|&(p, f, _)| Circle::new((p, f), 4, BLUE.filled())))?;
+    chart.draw_series(bins.iter().map(|&(p, f, n)| {
+        Text::new(format!("{n}"), (p + 0.01, (f - 0.04).max(0.0)), ("sans-serif", 11))
+    }))?;
+    root.present()?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

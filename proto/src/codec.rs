@@ -200,6 +200,7 @@ mod tests {
             let _ = decode::<VarianceRequest>(encoding, bytes);
             let _ = decode::<RayRequest>(encoding, bytes);
             let _ = decode::<GridRequest>(encoding, bytes);
+            let _ = decode::<SlopeRequest>(encoding, bytes);
             let _ = decode::<StatusRequest>(encoding, bytes);
             let _ = decode::<StatusReply>(encoding, bytes);
             let _ = decode::<MapUpdate>(encoding, bytes);

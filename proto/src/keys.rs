@@ -20,16 +20,19 @@ pub enum QueryKind {
     Grid,
     /// A range image as a sensor would see the map from a pose.
     View,
+    /// Slope with σ and risk at (x, y), over a robot's footprint.
+    Slope,
 }
 
 impl QueryKind {
     /// Every kind, for declaring queryables.
-    pub const ALL: [QueryKind; 5] = [
+    pub const ALL: [QueryKind; 6] = [
         QueryKind::Elevation,
         QueryKind::Variance,
         QueryKind::Ray,
         QueryKind::Grid,
         QueryKind::View,
+        QueryKind::Slope,
     ];
 
     /// The last key chunk of this kind.
@@ -40,6 +43,7 @@ impl QueryKind {
             QueryKind::Ray => "ray",
             QueryKind::Grid => "grid",
             QueryKind::View => "view",
+            QueryKind::Slope => "slope",
         }
     }
 }

@@ -16,4 +16,4 @@ pub mod msg;
 pub mod scan;
 
 /// Version of the whole contract (shared-memory layout and query messages); bumped on any change.
-pub const PROTOCOL_VERSION: u32 = 7;
+pub const PROTOCOL_VERSION: u32 = 8;

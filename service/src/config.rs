@@ -5,6 +5,7 @@ use crate::gp::{JitterPolicy, Kernel, KernelFamily};
 use crate::map::local::{MapParams, PriorKind, RangeTarget};
 use crate::map::tiles::Tiling;
 use rangegp_proto::keys::MapKeys;
+use rangegp_proto::msg::RobotModel;
 use rangegp_transport::zenoh_config;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -57,6 +58,45 @@ pub struct Config {
     pub metrics: MetricsConfig,
     /// Durable checkpoints of the aggregate.
     pub checkpoint: CheckpointConfig,
+    /// The robot the planner layers (risk, cost) judge by, when a request names none.
+    pub layers: LayersConfig,
+}
+
+/// The robot model of the planner layers (docs/PROTOCOL.md "Planner layers").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LayersConfig {
+    /// Radius of the disc the robot stands on, metres: slope, roughness and step are taken over it.
+    pub footprint_radius_m: f64,
+    /// Steepest slope the robot climbs, degrees.
+    pub max_slope_deg: f64,
+    /// Highest step the robot climbs, metres.
+    pub max_step_m: f64,
+    /// Risk at and above which a cell is lethal (costmap 100).
+    pub lethal_risk: f64,
+}
+
+impl Default for LayersConfig {
+    fn default() -> Self {
+        Self {
+            footprint_radius_m: 0.3,
+            max_slope_deg: 20.0,
+            max_step_m: 0.2,
+            lethal_risk: 0.5,
+        }
+    }
+}
+
+impl LayersConfig {
+    /// The robot model on the wire.
+    pub fn robot(&self) -> RobotModel {
+        RobotModel {
+            footprint_radius_m: self.footprint_radius_m,
+            max_slope_deg: self.max_slope_deg,
+            max_step_m: self.max_step_m,
+            lethal_risk: self.lethal_risk,
+        }
+    }
 }
 
 /// Durable checkpoints of the aggregate (docs/OPERATIONS.md).
@@ -319,6 +359,7 @@ impl Default for Config {
             query: QueryConfig::default(),
             metrics: MetricsConfig::default(),
             checkpoint: CheckpointConfig::default(),
+            layers: LayersConfig::default(),
         }
     }
 }
@@ -598,6 +639,9 @@ impl Config {
         if let Some((_, field, reason)) = checks.iter().find(|(ok, _, _)| !ok) {
             return Err(invalid(field, reason));
         }
+        if let Some(reason) = self.layers.robot().problem() {
+            return Err(invalid("layers", reason));
+        }
         if self.checkpoint.interval_ms == 0 {
             return Err(invalid("checkpoint.interval_ms", "must be positive"));
         }
@@ -741,6 +785,7 @@ mod tests {
         );
         assert_eq!(field("[ingest]\npoll_interval_ms = 0"), "ingest.poll_interval_ms");
         assert_eq!(field("[checkpoint]\nkeep = 1"), "checkpoint.keep");
+        assert_eq!(field("[layers]\nmax_slope_deg = 95.0"), "layers");
         assert_eq!(
             field("[zenoh]\nlisten = [\"not an endpoint\"]"),
             "zenoh.listen / zenoh.connect"

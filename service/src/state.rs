@@ -6,7 +6,7 @@ use crate::map::MapSnapshot;
 use crate::metrics::Metrics;
 use arc_swap::ArcSwap;
 use rangegp_proto::keys::MapKeys;
-use rangegp_proto::msg::CorrectionReply;
+use rangegp_proto::msg::{CorrectionReply, RobotModel};
 use std::collections::VecDeque;
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
@@ -41,6 +41,8 @@ pub struct DaemonState {
     pub queue_deadline: Duration,
     /// Pose corrections: applied so far, and waiting.
     pub corrections: CorrectionDesk,
+    /// The robot the planner layers judge by when a request names none (`[layers]`).
+    pub robot: RobotModel,
 }
 
 /// A correction waiting for the aggregate thread.

@@ -39,6 +39,8 @@ fn child_slow_client() -> Result<()> {
         min_m: [1000.0, 1000.0],
         max_m: [1064.0, 1064.0],
         resolution_m: 0.125,
+        layers: Vec::new(),
+        robot: None,
     };
     let payload = codec::encode(Encoding::Json, &request)?;
     for _ in 0..SLOW_GRIDS {

@@ -10,7 +10,11 @@ fn main() -> Result<()> {
     // The experiments outside `all` write (and name) their own report instead.
     if !matches!(
         opts.experiment,
-        Experiment::Calibration | Experiment::View | Experiment::Sitemap | Experiment::World
+        Experiment::Calibration
+            | Experiment::View
+            | Experiment::Sitemap
+            | Experiment::World
+            | Experiment::Layers
     ) {
         println!("\n  written: {}", opts.out.join("summary.json").display());
     }

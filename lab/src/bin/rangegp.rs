@@ -6,9 +6,9 @@ use clap::{Args, Parser, Subcommand};
 use rangegp_client::{Client, ScanPublisher};
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
-use rangegp_lab::plot::{Heatmap, Raster};
+use rangegp_lab::plot::{Heatmap, Limits, Raster};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
-use rangegp_proto::msg::{Camera, GridReply, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest};
+use rangegp_proto::msg::{Camera, GridReply, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
@@ -97,17 +97,23 @@ enum Command {
         #[command(subcommand)]
         kind: QueryCommand,
     },
-    /// Elevation and σ layers over a box: prints a summary as JSON, or the whole reply with
-    /// `--json`; `--png FILE` draws elevation to FILE and σ to FILE with `_sigma` before `.png`.
+    /// Elevation and σ layers over a box, and the planner layers named by `--layers`: prints a
+    /// summary as JSON, or the whole reply with `--json`; `--png FILE` draws elevation to FILE,
+    /// σ to FILE with `_sigma` before `.png`, and each named layer with `_<layer>`.
     Grid {
         #[command(flatten)]
         connection: Connection,
         /// Box corners X0 Y0 X1 Y1, map frame, metres.
         #[arg(long, num_args = 4, allow_negative_numbers = true, required = true)]
         bbox: Vec<f64>,
-        /// Cell side, metres.
+        /// Cell side, metres (at most the robot's footprint radius with `--layers`).
         #[arg(long, default_value_t = 0.25)]
         res: f64,
+        /// Planner layers, comma separated: slope, slope_sigma, aspect, roughness,
+        /// roughness_sigma, step, step_sigma, slope_risk, step_risk, unknown_risk, risk,
+        /// traversal_cost, cost; or `all`.
+        #[arg(long, value_delimiter = ',')]
+        layers: Vec<String>,
         /// Write the layers as PNG here.
         #[arg(long)]
         png: Option<std::path::PathBuf>,
@@ -212,6 +218,13 @@ enum QueryCommand {
         #[arg(num_args = 2.., allow_negative_numbers = true, required = true)]
         coords: Vec<f64>,
     },
+    /// Slope (with σ, aspect, normal and slope risk) over the daemon's robot footprint at
+    /// X Y [X Y ...].
+    Slope {
+        /// Coordinates in pairs, map frame, metres.
+        #[arg(num_args = 2.., allow_negative_numbers = true, required = true)]
+        coords: Vec<f64>,
+    },
     /// Cast one ray: origin OX OY OZ, direction DX DY DZ.
     Ray {
         /// ox oy oz dx dy dz.
@@ -232,7 +245,19 @@ fn pairs(coords: &[f64]) -> Result<Vec<[f64; 2]>> {
     Ok(coords.chunks(2).map(|c| [c[0], c[1]]).collect())
 }
 
-/// Elevation to `file`, σ beside it (`<stem>_sigma.png`); unobserved cells grey.
+/// `--layers` names: one layer, or `all`.
+fn parse_layers(name: &str) -> Result<Vec<Layer>> {
+    if name == "all" {
+        return Ok(Layer::ALL.to_vec());
+    }
+    Layer::parse(name).map(|l| vec![l]).with_context(|| {
+        let names: Vec<&str> = Layer::ALL.iter().map(|l| l.as_str()).collect();
+        format!("unknown layer {name:?}: one of {} or all", names.join(", "))
+    })
+}
+
+/// Elevation to `file`, σ beside it (`<stem>_sigma.png`), each derived layer as
+/// `<stem>_<layer>.png`; unobserved cells grey.
 fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
     let elevation = Raster::from_grid(rep, &rep.elevation_m, |z| z);
     Heatmap::new("Elevation", "elevation (m)").save(file, &elevation)?;
@@ -240,13 +265,60 @@ fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
     Heatmap::new("σ of the elevation", "σ (m)")
         .gradient(colorous::MAGMA)
         .save(&sigma_beside(file), &sigma)?;
+    let robot = &rep.robot;
+    for layer in &rep.layers {
+        let (title, unit, convert, limits, gradient): (String, &str, fn(f64) -> f64, Limits, _) =
+            match layer.layer {
+                Layer::Slope => ("Slope over the footprint".into(), "slope (°)", f64::to_degrees, Limits::Robust, colorous::VIRIDIS),
+                Layer::SlopeSigma => ("σ of the slope".into(), "σ (°)", f64::to_degrees, Limits::Robust, colorous::MAGMA),
+                Layer::Aspect => ("Aspect (downhill, from +x)".into(), "aspect (°)", f64::to_degrees, Limits::Fixed(-180.0, 180.0), colorous::SINEBOW),
+                Layer::Roughness => ("Roughness (RMS off the footprint's plane)".into(), "roughness (m)", identity, Limits::Robust, colorous::VIRIDIS),
+                Layer::RoughnessSigma => ("σ of the roughness".into(), "σ (m)", identity, Limits::Robust, colorous::MAGMA),
+                Layer::Step => ("Step across the footprint".into(), "step (m)", identity, Limits::Robust, colorous::VIRIDIS),
+                Layer::StepSigma => ("σ of the step".into(), "σ (m)", identity, Limits::Robust, colorous::MAGMA),
+                Layer::SlopeRisk => (format!("P(slope > {}°)", robot.max_slope_deg), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+                Layer::StepRisk => (format!("P(step > {} m)", robot.max_step_m), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+                Layer::UnknownRisk => ("Share of the footprint unknown".into(), "share", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+                Layer::Risk => ("P(slope or step over the limit)".into(), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+                Layer::TraversalCost | Layer::Cost => ("Traversal cost (risk and unknown)".into(), "cost", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+            };
+        let raster = Raster::from_grid(rep, &layer.values, convert);
+        Heatmap::new(title, unit)
+            .limits(limits)
+            .gradient(gradient)
+            .save(&beside(file, layer.layer.as_str()), &raster)?;
+    }
+    if !rep.costmap.is_empty() {
+        let cost: Vec<Option<f32>> = rep
+            .costmap
+            .iter()
+            .map(|&c| (c >= 0).then_some(f32::from(c)))
+            .collect();
+        Heatmap::new(
+            format!("Costmap (100 lethal at risk ≥ {}; grey unknown)", robot.lethal_risk),
+            "cost (0-100)",
+        )
+        .limits(Limits::Fixed(0.0, 100.0))
+        .gradient(colorous::INFERNO)
+        .save(&beside(file, "cost"), &Raster::from_grid(rep, &cost, identity))?;
+    }
     Ok(())
+}
+
+/// The value unchanged (a layer drawn in its own unit).
+fn identity(v: f64) -> f64 {
+    v
 }
 
 /// `<stem>_sigma.png` beside `file`: where the σ picture of `file`'s layer goes.
 fn sigma_beside(file: &std::path::Path) -> std::path::PathBuf {
+    beside(file, "sigma")
+}
+
+/// `<stem>_<tag>.png` beside `file`.
+fn beside(file: &std::path::Path, tag: &str) -> std::path::PathBuf {
     let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("layer");
-    file.with_file_name(format!("{stem}_sigma.png"))
+    file.with_file_name(format!("{stem}_{tag}.png"))
 }
 
 /// The range image of a lidar view to `file` and its σ beside it, over azimuth and elevation
@@ -361,6 +433,9 @@ fn main() -> Result<()> {
                 QueryCommand::Variance { coords } => {
                     serde_json::to_string_pretty(&client.variance(&pairs(&coords)?)?)?
                 }
+                QueryCommand::Slope { coords } => {
+                    serde_json::to_string_pretty(&client.slope(&pairs(&coords)?, None)?)?
+                }
                 QueryCommand::Ray { values, max_range_m } => {
                     let ray = Ray {
                         origin_m: [values[0], values[1], values[2]],
@@ -376,12 +451,26 @@ fn main() -> Result<()> {
             connection,
             bbox,
             res,
+            layers,
             png,
             json,
         } => {
-            let rep = connection
-                .open()?
-                .grid([bbox[0], bbox[1]], [bbox[2], bbox[3]], res)?;
+            let mut wanted: Vec<Layer> = Vec::new();
+            for name in &layers {
+                for l in parse_layers(name)? {
+                    if !wanted.contains(&l) {
+                        wanted.push(l);
+                    }
+                }
+            }
+            let rep = connection.open()?.grid_request(&GridRequest {
+                version: PROTOCOL_VERSION,
+                min_m: [bbox[0], bbox[1]],
+                max_m: [bbox[2], bbox[3]],
+                resolution_m: res,
+                layers: wanted,
+                robot: None,
+            })?;
             if let Some(file) = &png {
                 draw_grid(&rep, file)?;
             }

@@ -7,6 +7,7 @@ pub mod calibration;
 pub mod change;
 pub mod drift;
 mod drive;
+pub mod layers;
 pub mod local;
 pub mod overhang;
 pub mod progress;
@@ -48,6 +49,9 @@ pub enum Experiment {
     /// A map that follows the world (not in `all`; built so far: motion deskew): writes
     /// world.json.
     World,
+    /// Planner layers (slope, step, roughness, risk, cost) against the terrain's truth and A*
+    /// over the cost layer (not in `all`): writes layers.json.
+    Layers,
 }
 
 /// Command line of `rangegp-eval`.
@@ -150,6 +154,12 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
         world::print_world(&report);
         let failures = report.failures.clone();
         return write_report(opts, "world.json", &report, failures);
+    }
+    if opts.experiment == Experiment::Layers {
+        let report = layers::run_layers(&FamilyOptions::of(opts)?, &opts.out)?;
+        layers::print_layers(&report);
+        let failures = report.failures.clone();
+        return write_report(opts, "layers.json", &report, failures);
     }
     if opts.experiment == Experiment::Sitemap {
         let report = sitemap::run_sitemap(&sitemap::SitemapOptions {

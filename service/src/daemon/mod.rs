@@ -147,6 +147,7 @@ impl DaemonBuilder {
                 log: Mutex::default(),
                 waiting: config.aggregate.enabled.then(Mutex::default),
             },
+            robot: config.layers.robot(),
         });
         // From here on an early return drops `daemon`, which stops what has started.
         let mut daemon = Daemon {

@@ -11,7 +11,9 @@
 //! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration".
 
 use super::query::{self, Answerer};
-use super::scales::{bin_of, class_of, BinScale, ScaleTable, SigmaScales, BINS, CLASSES, SIGMA_GROUPS};
+use super::scales::{
+    bin_of, class_of, BinScale, ScaleTable, SigmaScales, TailShape, BINS, CLASSES, SIGMA_GROUPS,
+};
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use crate::gp::sphere;
@@ -116,9 +118,58 @@ impl Calibrator {
         if touched[1] {
             self.scales.aggregate = table_of(&self.aggregate);
         }
+        if touched[0] || touched[1] {
+            self.scales.tails = self.tails();
+        }
         answered
     }
+
+    /// The shape of the calibrated errors: the shares of every held residual (both sources,
+    /// weighted by area) within ±1 and ±1.96 calibrated σ, fitted by [`TailShape::fit`];
+    /// Gaussian until [`MIN_TAIL_RESIDUALS`] are held.
+    fn tails(&self) -> TailShape {
+        let mut inside = [0.0; 2];
+        let mut total = 0.0;
+        let mut count = 0;
+        for (residuals, table) in [
+            (&self.window, &self.scales.window),
+            (&self.aggregate, &self.scales.aggregate),
+        ] {
+            for (c, bins) in residuals.iter().enumerate() {
+                for (b, q) in bins.iter().enumerate() {
+                    for r in q {
+                        let f = table[c][b].factor(r.var.sqrt());
+                        let latent = f * f * r.var;
+                        if r.noise_var > LATENT_SHARE * latent {
+                            continue;
+                        }
+                        let v = latent + r.noise_var;
+                        let w = r.weight.max(1e-9);
+                        total += w;
+                        count += 1;
+                        for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+                            if r.r2 <= k * k * v {
+                                *share += w;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if count < MIN_TAIL_RESIDUALS {
+            return TailShape::default();
+        }
+        TailShape::fit(inside[0] / total, inside[1] / total)
+    }
 }
+
+/// Only residuals whose return noise variance is at most this share of the answer's calibrated
+/// variance show the shape: the rest are mostly the return's own (Gaussian) noise, which would
+/// hide the heavy tails of the map's errors that planner risks are about.
+pub const LATENT_SHARE: f64 = 0.25;
+
+/// Residuals held before the tail shape is fitted (a Gaussian until then).
+pub const MIN_TAIL_RESIDUALS: usize = 400;
 
 /// Up to [`PER_BIN_PER_SCAN`] returns of `scan` per range bin from `reference` (a sensor position),
 /// spread over the scan by a stride coprime with its size; each as a map point, its noise

@@ -6,6 +6,8 @@ pub mod correction;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;
+pub mod grid;
+pub mod layers;
 pub mod local;
 pub mod prior;
 pub mod query;

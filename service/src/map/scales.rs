@@ -84,6 +84,79 @@ pub struct SigmaScales {
     pub window: ScaleTable,
     /// Aggregate answers (range from the newest sensor position; all in the last class).
     pub aggregate: ScaleTable,
+    /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
+    pub tails: TailShape,
+}
+
+/// Degrees of freedom [`TailShape::fit`] chooses among (Gaussian besides).
+const TAIL_DOFS: [f64; 9] = [1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0];
+
+/// The shape of calibrated errors: error = `scale` · σ · T with T Student's t of `dof` degrees of
+/// freedom, Gaussian when `dof` is infinite. Heavy tails make a calibrated σ too wide near the
+/// mean and too narrow far out: a Gaussian then overstates the probability of a limit a little
+/// beyond the mean and understates it far beyond (docs/ARCHITECTURE.md "Planner layers").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TailShape {
+    /// Degrees of freedom (infinite: Gaussian).
+    pub dof: f64,
+    /// Factor on σ of the t's unit scale.
+    pub scale: f64,
+}
+
+impl Default for TailShape {
+    fn default() -> Self {
+        Self {
+            dof: f64::INFINITY,
+            scale: 1.0,
+        }
+    }
+}
+
+impl TailShape {
+    /// The shape whose central intervals of ±1 σ and ±1.96 σ hold `cov68` and `cov95` of the
+    /// errors (as measured): for each candidate degree of freedom the scale that gives `cov68`,
+    /// then the candidate whose ±1.96 σ share is nearest `cov95`. Gaussian when the shares are not
+    /// in (0, 1) or not increasing.
+    pub fn fit(cov68: f64, cov95: f64) -> Self {
+        if !(cov68 > 0.0 && cov68 < cov95 && cov95 < 1.0) {
+            return Self::default();
+        }
+        let q = 0.5 * (1.0 + cov68);
+        let gaussian = {
+            let scale = 1.0 / distrs::Normal::ppf(q, 0.0, 1.0);
+            let err = (2.0 * distrs::Normal::cdf(1.96 / scale, 0.0, 1.0) - 1.0 - cov95).abs();
+            (err, Self {
+                dof: f64::INFINITY,
+                scale,
+            })
+        };
+        TAIL_DOFS
+            .iter()
+            .map(|&dof| {
+                let scale = 1.0 / distrs::StudentsT::ppf(q, dof);
+                let err = (2.0 * distrs::StudentsT::cdf(1.96 / scale, dof) - 1.0 - cov95).abs();
+                (err, Self { dof, scale })
+            })
+            .chain([gaussian])
+            .filter(|(err, t)| err.is_finite() && t.scale.is_finite() && t.scale > 0.0)
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map_or_else(Self::default, |(_, t)| t)
+    }
+
+    /// P(X > limit) for X of mean `mean` and calibrated σ `sd` with this shape; a step at the
+    /// limit when `sd` is 0.
+    pub fn exceedance(&self, mean: f64, sd: f64, limit: f64) -> f64 {
+        if !(sd > 0.0) {
+            return if mean > limit { 1.0 } else { 0.0 };
+        }
+        let x = (limit - mean) / (self.scale * sd);
+        let below = if self.dof.is_finite() {
+            distrs::StudentsT::cdf(x, self.dof)
+        } else {
+            distrs::Normal::cdf(x, 0.0, 1.0)
+        };
+        (1.0 - below).clamp(0.0, 1.0)
+    }
 }
 
 impl SigmaScales {
@@ -143,6 +216,19 @@ pub fn class_of(grazing: f64) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn gaussian_shares_give_a_gaussian_and_heavy_tails_a_student_t_that_holds_them() {
+        let g = TailShape::fit(0.6827, 0.95);
+        assert!(g.dof >= 20.0 && (g.scale - 1.0).abs() < 0.02, "{g:?}");
+        let t = TailShape::fit(0.80, 0.93);
+        assert!(t.dof <= 4.0 && t.scale < 0.8, "{t:?}");
+        let share = |k: f64| 1.0 - 2.0 * t.exceedance(0.0, 1.0, k);
+        assert!((share(1.0) - 0.80).abs() < 1e-6);
+        assert!((share(1.96) - 0.93).abs() < 0.02);
+        assert_eq!(TailShape::fit(0.9, 0.8), TailShape::default());
+        assert_eq!(TailShape::default().exceedance(0.3, 0.0, 0.2), 1.0);
+    }
 
     #[test]
     fn the_factor_is_continuous_across_range_bins_grazing_classes_and_sigma_groups() {

@@ -2,6 +2,9 @@
 
 use super::DaemonState;
 use crate::map::aggregate::Aggregate;
+use crate::map::grid::GridBox;
+use crate::map::layers::LayerModel;
+use crate::map::MapSnapshot;
 use crate::map::query;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
@@ -122,6 +125,16 @@ pub fn answer(
             let req: ViewRequest = decode(encoding, payload)?;
             encode(encoding, &view(&req, state)?)
         }
+        Endpoint::Query(QueryKind::Slope) => {
+            let req: SlopeRequest = decode(encoding, payload)?;
+            let snap = snapshot(state)?;
+            let model = layer_model(req.robot, state, &snap)?;
+            let samples = crate::map::grid::samples_per_point(&model);
+            check_batch(req.points.len().saturating_mul(samples), state)?;
+            check_points(&req.points, state)?;
+            let reply = crate::map::grid::slopes(&snap, &req.points, &model, state.batch_threads);
+            encode(encoding, &reply)
+        }
     }
 }
 
@@ -155,7 +168,21 @@ fn view(req: &ViewRequest, state: &DaemonState) -> Result<ViewReply, Failure> {
     })
 }
 
-/// The layers of a validated grid request: cell centres evaluated like elevation queries.
+/// The robot `requested` for a layer query, else the daemon's, with `snap`'s error model.
+fn layer_model(
+    requested: Option<RobotModel>,
+    state: &DaemonState,
+    snap: &MapSnapshot,
+) -> Result<LayerModel, Failure> {
+    let robot = requested.unwrap_or(state.robot);
+    if let Some(reason) = robot.problem() {
+        return fail(ErrorCode::InvalidArgument, format!("robot: {reason}"));
+    }
+    Ok(LayerModel::new(robot, snap))
+}
+
+/// The layers of a validated grid request: cell centres evaluated like elevation queries, the
+/// derived layers over the robot's footprint around each.
 fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
     let Some((cols, rows)) = req.shape() else {
         return fail(
@@ -163,34 +190,49 @@ fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
             "grid: min_m below max_m, both finite, and resolution_m positive",
         );
     };
-    if cols.saturating_mul(rows) > state.max_batch as u64 {
+    let snap = snapshot(state)?;
+    let model = layer_model(req.robot, state, &snap)?;
+    let res = req.resolution_m;
+    let derived = !req.layers.is_empty();
+    if derived && res > model.robot.footprint_radius_m {
+        return fail(
+            ErrorCode::InvalidArgument,
+            format!(
+                "grid: layers need resolution_m ≤ the footprint radius ({} m): a coarser grid \
+                 samples too few points of the footprint",
+                model.robot.footprint_radius_m
+            ),
+        );
+    }
+    let margin = if derived {
+        (model.robot.footprint_radius_m / res).floor() as u64
+    } else {
+        0
+    };
+    let evaluated = (cols + 2 * margin).saturating_mul(rows + 2 * margin);
+    if evaluated > state.max_batch as u64 {
         return fail(
             ErrorCode::BatchTooLarge,
             format!(
-                "grid of {cols} × {rows} cells exceeds the limit of {} cells",
+                "grid of {cols} × {rows} cells ({evaluated} with the footprint margin) exceeds \
+                 the limit of {} cells",
                 state.max_batch
             ),
         );
     }
-    let snap = snapshot(state)?;
-    let res = req.resolution_m;
-    let origin = [req.min_m[0] + res / 2.0, req.min_m[1] + res / 2.0];
-    let centres: Vec<[f64; 2]> = (0..rows)
-        .flat_map(|r| (0..cols).map(move |c| [origin[0] + c as f64 * res, origin[1] + r as f64 * res]))
-        .collect();
-    let items = query::par_map(&centres, state.batch_threads, |p| {
-        query::elevation(&snap, p[0], p[1])
-    });
-    Ok(GridReply {
-        version: PROTOCOL_VERSION,
-        origin_m: origin,
+    let grid_box = GridBox {
+        origin_m: [req.min_m[0] + res / 2.0, req.min_m[1] + res / 2.0],
         resolution_m: res,
-        cols: cols as u32,
-        rows: rows as u32,
-        elevation_m: items.iter().map(|i| i.z_m.map(|z| z as f32)).collect(),
-        variance_m2: items.iter().map(|i| i.z_var_m2.map(|v| v as f32)).collect(),
-        provenance: items.iter().map(|i| i.provenance).collect(),
-    })
+        cols: cols as usize,
+        rows: rows as usize,
+    };
+    Ok(crate::map::grid::grid(
+        &snap,
+        &grid_box,
+        &req.layers,
+        &model,
+        state.batch_threads,
+    ))
 }
 
 fn decode<T: DeserializeOwned>(encoding: Encoding, payload: &[u8]) -> Result<T, Failure> {

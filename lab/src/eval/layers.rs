@@ -1,0 +1,657 @@
+//! `rangegp-eval layers` (issue 18): are slope, step, roughness, risk and cost right, with the σ
+//! they claim, on terrain the defaults were never tuned on, and does a planner on the cost layer
+//! stay on ground the robot can drive?
+//!
+//! For each terrain of the sim family and sensor, a robot drives a short path mapped as the
+//! daemon maps it ([`super::drive`]); a grid of every layer around the last pose is answered by
+//! the daemon's own grid code ([`grid::grid`]) and scored against the same layers computed from
+//! the terrain's true heights on the same cells and footprint (σ 0). A cell is truly
+//! untraversable when its true slope or true step exceeds the robot's limit. Planning: A* over
+//! the cost layer (lethal and unknown cells blocked, each step's length weighted by 1 + 10 ×
+//! traversal cost) between random start / goal cells, against the oracle: A* over the true
+//! labels on the cells the map observed (where the robot's map could plan at all).
+
+use super::drive::{map_drive, Drive, MappedDrive};
+use super::FamilyOptions;
+use crate::plot::reliability_chart;
+use anyhow::Result;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use rangegp_proto::msg::{GridReply, Layer, RobotModel};
+use rangegp_service::map::grid::{self, GridBox};
+use rangegp_service::map::layers::{cell_layers, HeightGrid, LayerModel, Stencil};
+use rangegp_sim::family::FAMILY_SIZE_M;
+use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
+use serde::Serialize;
+use std::path::Path;
+
+/// Bounds of the slope's 95 % coverage.
+pub const SLOPE_COV95: (f64, f64) = (0.90, 0.98);
+/// Planned path cells that are truly untraversable, at most.
+pub const MAX_PATH_UNSAFE: f64 = 0.01;
+/// Planned path length over the oracle's, at most.
+pub const MAX_PATH_LENGTH_RATIO: f64 = 1.15;
+/// Start / goal pairs planned, at least.
+pub const MIN_PAIRS: usize = 50;
+/// Weight of a cell's risk on the length of a step through it.
+pub const RISK_WEIGHT: f64 = 10.0;
+/// Side of the scored box around the last pose, metres.
+pub const BOX_M: f64 = 16.0;
+/// Grid resolution, metres.
+pub const RESOLUTION_M: f64 = 0.1;
+/// Start and goal lie at least this far apart, metres.
+pub const MIN_PAIR_DISTANCE_M: f64 = 5.0;
+
+/// One terrain × sensor.
+#[derive(Debug, Clone, Serialize)]
+pub struct LayerCase {
+    /// Terrain of the family.
+    pub terrain: String,
+    /// Sensor preset.
+    pub sensor: String,
+    /// Cells scored (the map gives layers there).
+    pub cells: usize,
+    /// Slope RMSE, degrees.
+    pub slope_rmse_deg: f64,
+    /// Share of cells whose true slope lies within the slope ± 1.96 σ.
+    pub slope_cov95: f64,
+    /// Share within ± 1 σ.
+    pub slope_cov68: f64,
+    /// Mean slope σ, degrees.
+    pub slope_mean_sd_deg: f64,
+    /// Step RMSE, metres.
+    pub step_rmse_m: f64,
+    /// Step 95 % coverage.
+    pub step_cov95: f64,
+    /// Roughness RMSE, metres.
+    pub roughness_rmse_m: f64,
+    /// Share of scored cells truly untraversable.
+    pub untraversable_share: f64,
+    /// Brier score of the risk against the true labels.
+    pub risk_brier: f64,
+    /// Brier score of the baseline: 1 where the mean slope or mean step exceeds the limit.
+    pub risk_brier_baseline: f64,
+    /// Pairs planned.
+    pub pairs: usize,
+    /// Pairs the map found no path for while the oracle did.
+    pub no_path: usize,
+    /// Planned path cells, and those truly untraversable.
+    pub path_cells: [usize; 2],
+    /// Planned length over the oracle's, mean over pairs.
+    pub path_length_ratio: f64,
+    /// The tail shape the snapshot learnt (degrees of freedom, scale).
+    pub tails: [f64; 2],
+    /// Slope 95 % coverage with other correlation lengths of the height errors (metres,
+    /// coverage): how much the σ depends on that length.
+    pub slope_cov95_by_error_length: Vec<[f64; 2]>,
+}
+
+/// What `layers.json` holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct LayersReport {
+    /// Quick (CI) or full sizes.
+    pub quick: bool,
+    /// World seed.
+    pub seed: u64,
+    /// The robot judged for (the configuration's `[layers]`).
+    pub robot: RobotModel,
+    /// Slope RMSE pooled over every case, degrees.
+    pub slope_rmse_deg: f64,
+    /// Slope 95 % coverage pooled.
+    pub slope_cov95: f64,
+    /// Slope 68 % coverage pooled (within ± 1 σ).
+    pub slope_cov68: f64,
+    /// Step RMSE pooled, metres.
+    pub step_rmse_m: f64,
+    /// Roughness RMSE pooled, metres.
+    pub roughness_rmse_m: f64,
+    /// Brier score of the risk pooled.
+    pub risk_brier: f64,
+    /// Brier score of the thresholded means pooled.
+    pub risk_brier_baseline: f64,
+    /// Planned path cells truly untraversable, over all planned path cells.
+    pub path_unsafe_fraction: f64,
+    /// Planned length over the oracle's, mean over every pair.
+    pub path_length_ratio: f64,
+    /// Pairs planned.
+    pub pairs: usize,
+    /// Pairs without a planned path where the oracle had one.
+    pub no_path: usize,
+    /// Risk reliability: (mean predicted, observed frequency, cells) per tenth of risk.
+    pub risk_reliability: Vec<(f64, f64, usize)>,
+    /// The same for the slope risk against the true slope's label alone.
+    pub slope_risk_reliability: Vec<(f64, f64, usize)>,
+    /// The same for the step risk against the true step's label alone.
+    pub step_risk_reliability: Vec<(f64, f64, usize)>,
+    /// Every case.
+    pub cases: Vec<LayerCase>,
+    /// Bars missed, one line each.
+    pub failures: Vec<String>,
+}
+
+/// Scored cells of one case, kept for pooling.
+#[derive(Default)]
+struct Pool {
+    slope_err2: Vec<f64>,
+    slope_in95: Vec<bool>,
+    slope_in68: Vec<bool>,
+    step_err2: Vec<f64>,
+    rough_err2: Vec<f64>,
+    risk: Vec<(f64, bool)>,
+    slope_risk: Vec<(f64, bool)>,
+    step_risk: Vec<(f64, bool)>,
+    baseline: Vec<f64>,
+}
+
+/// Runs the layer evaluation; pictures go to `out`.
+pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
+    let names: &[&str] = if opts.quick {
+        &["craters", "fbm-h05-16deg", "boulders"]
+    } else {
+        &[]
+    };
+    let terrains: Vec<TerrainSpec> = family()
+        .into_iter()
+        .filter(|t| names.is_empty() || names.contains(&t.name.as_str()))
+        .collect();
+    let sensors = if opts.quick {
+        vec![ScannerPreset::vlp16()]
+    } else {
+        vec![ScannerPreset::vlp16(), ScannerPreset::os1_64(1024)]
+    };
+    let pairs_per_case = MIN_PAIRS.div_ceil(terrains.len() * sensors.len()).max(6);
+    let robot = opts.config.layers.robot();
+    let mut pool = Pool::default();
+    let mut cases = Vec::new();
+    let (mut path_cells, mut unsafe_cells, mut ratios, mut no_path) = (0, 0, Vec::new(), 0);
+    for spec in &terrains {
+        let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
+        for preset in &sensors {
+            eprintln!("layers: {} with {} …", spec.name, preset.name);
+            let (case, case_pool) = run_case(&terrain, spec, preset, robot, opts, pairs_per_case)?;
+            path_cells += case.path_cells[0];
+            unsafe_cells += case.path_cells[1];
+            no_path += case.no_path;
+            ratios.extend(std::iter::repeat_n(case.path_length_ratio, case.pairs - case.no_path));
+            pool.slope_err2.extend(case_pool.slope_err2);
+            pool.slope_in95.extend(case_pool.slope_in95);
+            pool.slope_in68.extend(case_pool.slope_in68);
+            pool.step_err2.extend(case_pool.step_err2);
+            pool.rough_err2.extend(case_pool.rough_err2);
+            pool.risk.extend(case_pool.risk);
+            pool.slope_risk.extend(case_pool.slope_risk);
+            pool.step_risk.extend(case_pool.step_risk);
+            pool.baseline.extend(case_pool.baseline);
+            cases.push(case);
+        }
+    }
+    let reliability = reliability(&pool.risk);
+    std::fs::create_dir_all(out)?;
+    reliability_chart(
+        &out.join("layers_risk_reliability.png"),
+        "Traversability risk against the true labels (cells per bin)",
+        &reliability,
+    )?;
+    let mut report = LayersReport {
+        quick: opts.quick,
+        seed: opts.seed,
+        robot,
+        slope_rmse_deg: rms(&pool.slope_err2),
+        slope_cov95: share(&pool.slope_in95),
+        slope_cov68: share(&pool.slope_in68),
+        step_rmse_m: rms(&pool.step_err2),
+        roughness_rmse_m: rms(&pool.rough_err2),
+        risk_brier: brier(pool.risk.iter().copied()),
+        risk_brier_baseline: brier(pool.baseline.iter().zip(&pool.risk).map(|(&b, &(_, l))| (b, l))),
+        path_unsafe_fraction: unsafe_cells as f64 / path_cells.max(1) as f64,
+        path_length_ratio: mean(&ratios),
+        pairs: cases.iter().map(|c| c.pairs).sum(),
+        no_path,
+        risk_reliability: reliability,
+        slope_risk_reliability: self::reliability(&pool.slope_risk),
+        step_risk_reliability: self::reliability(&pool.step_risk),
+        cases,
+        failures: Vec::new(),
+    };
+    report.failures = failures(&report);
+    Ok(report)
+}
+
+/// The bars of issue 18 that `r` misses.
+pub fn failures(r: &LayersReport) -> Vec<String> {
+    let mut out = Vec::new();
+    if !(SLOPE_COV95.0..=SLOPE_COV95.1).contains(&r.slope_cov95) {
+        out.push(format!(
+            "slope_cov95 {:.3} outside [{}, {}]",
+            r.slope_cov95, SLOPE_COV95.0, SLOPE_COV95.1
+        ));
+    }
+    if r.risk_brier.is_nan() || r.risk_brier >= r.risk_brier_baseline {
+        out.push(format!(
+            "risk_brier {:.4} not below the baseline's {:.4}",
+            r.risk_brier, r.risk_brier_baseline
+        ));
+    }
+    if r.pairs < MIN_PAIRS {
+        out.push(format!("{} start / goal pairs, want ≥ {MIN_PAIRS}", r.pairs));
+    }
+    if r.path_unsafe_fraction.is_nan() || r.path_unsafe_fraction > MAX_PATH_UNSAFE {
+        out.push(format!(
+            "path_unsafe_fraction {:.4} above {MAX_PATH_UNSAFE}",
+            r.path_unsafe_fraction
+        ));
+    }
+    if r.path_length_ratio.is_nan() || r.path_length_ratio > MAX_PATH_LENGTH_RATIO {
+        out.push(format!(
+            "path_length_ratio {:.3} above {MAX_PATH_LENGTH_RATIO}",
+            r.path_length_ratio
+        ));
+    }
+    out
+}
+
+/// One terrain and sensor: drive, grid, score, plan.
+fn run_case(
+    terrain: &Heightmap,
+    spec: &TerrainSpec,
+    preset: &ScannerPreset,
+    robot: RobotModel,
+    opts: &FamilyOptions,
+    pairs: usize,
+) -> Result<(LayerCase, Pool)> {
+    let seed = opts.seed;
+    let MappedDrive { poses, snapshot, .. } = map_drive(
+        terrain,
+        preset,
+        &Drive {
+            config: &opts.config,
+            scans: if opts.quick { 12 } else { 20 },
+            path_seed: seed ^ 0x1a7e,
+            scan_seed: &|i| seed.wrapping_mul(7919) + i as u64,
+            stamp_base: 1_000_000,
+            evict: true,
+            progress: false,
+        },
+    )?;
+    let model = &LayerModel::new(robot, &snapshot);
+    let last = poses.last().map_or([0.0, 0.0], |p| [p.translation.x, p.translation.y]);
+    let n = (BOX_M / RESOLUTION_M).round() as usize;
+    let grid_box = GridBox {
+        origin_m: [
+            last[0] - BOX_M / 2.0 + RESOLUTION_M / 2.0,
+            last[1] - BOX_M / 2.0 + RESOLUTION_M / 2.0,
+        ],
+        resolution_m: RESOLUTION_M,
+        cols: n,
+        rows: n,
+    };
+    let reply = grid::grid(&snapshot, &grid_box, &Layer::ALL, model, rayon::current_num_threads());
+    let truth = TruthLayers::new(terrain, &grid_box, model);
+    let plain = grid::grid(
+        &snapshot,
+        &margin_box(&grid_box, truth.margin),
+        &[],
+        model,
+        rayon::current_num_threads(),
+    );
+    let layer = |l: Layer| reply.layer(l).unwrap_or(&[]);
+    let (slope_risk, step_risk) = (layer(Layer::SlopeRisk), layer(Layer::StepRisk));
+    let (slope, slope_sd, step, step_sd, rough, risk) = (
+        layer(Layer::Slope),
+        layer(Layer::SlopeSigma),
+        layer(Layer::Step),
+        layer(Layer::StepSigma),
+        layer(Layer::Roughness),
+        layer(Layer::Risk),
+    );
+    let robot = &model.robot;
+    let mut pool = Pool::default();
+    let mut sd_sum = 0.0;
+    for k in 0..n * n {
+        let (Some(t), Some(s), Some(sd)) = (truth.cells[k], slope[k], slope_sd[k]) else {
+            continue;
+        };
+        let (s, sd) = (f64::from(s), f64::from(sd));
+        let err = s - t.slope;
+        pool.slope_err2.push(err.to_degrees().powi(2));
+        pool.slope_in95.push(err.abs() <= 1.96 * sd);
+        pool.slope_in68.push(err.abs() <= sd);
+        sd_sum += sd.to_degrees();
+        let st = step[k].map_or(f64::NAN, f64::from);
+        pool.step_err2.push((st - t.step).powi(2));
+        pool.rough_err2.push((rough[k].map_or(f64::NAN, f64::from) - t.roughness).powi(2));
+        let (steep, high) = (t.slope > robot.max_slope_deg.to_radians(), t.step > robot.max_step_m);
+        pool.risk.push((risk[k].map_or(f64::NAN, f64::from), steep || high));
+        pool.slope_risk.push((slope_risk[k].map_or(f64::NAN, f64::from), steep));
+        pool.step_risk.push((step_risk[k].map_or(f64::NAN, f64::from), high));
+        let over = s > robot.max_slope_deg.to_radians() || st > robot.max_step_m;
+        pool.baseline.push(if over { 1.0 } else { 0.0 });
+    }
+    let step_cov95 = share(
+        &(0..n * n)
+            .filter_map(|k| {
+                let t = truth.cells[k]?;
+                let (st, sd) = (f64::from(step[k]?), f64::from(step_sd[k]?));
+                slope[k]?;
+                Some((st - t.step).abs() <= 1.96 * sd)
+            })
+            .collect::<Vec<_>>(),
+    );
+    let sweep = error_length_sweep(&plain, &truth, model, n);
+    let plan = plan_pairs(&reply, &truth, pairs, seed ^ spec.name.len() as u64 ^ preset.name.len() as u64);
+    let scored = pool.slope_err2.len();
+    let case = LayerCase {
+        terrain: spec.name.clone(),
+        sensor: preset.name.to_owned(),
+        cells: scored,
+        slope_rmse_deg: rms(&pool.slope_err2),
+        slope_cov95: share(&pool.slope_in95),
+        slope_cov68: share(&pool.slope_in68),
+        slope_mean_sd_deg: sd_sum / scored.max(1) as f64,
+        step_rmse_m: rms(&pool.step_err2),
+        step_cov95,
+        roughness_rmse_m: rms(&pool.rough_err2),
+        untraversable_share: pool.risk.iter().filter(|r| r.1).count() as f64 / scored.max(1) as f64,
+        risk_brier: brier(pool.risk.iter().copied()),
+        risk_brier_baseline: brier(pool.baseline.iter().zip(&pool.risk).map(|(&b, &(_, l))| (b, l))),
+        pairs: plan.pairs,
+        no_path: plan.no_path,
+        path_cells: [plan.path_cells, plan.unsafe_cells],
+        path_length_ratio: mean(&plan.ratios),
+        slope_cov95_by_error_length: sweep,
+        tails: [model.tails.dof, model.tails.scale],
+    };
+    Ok((case, pool))
+}
+
+/// `b` grown by `margin` cells on every side.
+fn margin_box(b: &GridBox, margin: usize) -> GridBox {
+    let m = margin as f64 * b.resolution_m;
+    GridBox {
+        origin_m: [b.origin_m[0] - m, b.origin_m[1] - m],
+        resolution_m: b.resolution_m,
+        cols: b.cols + 2 * margin,
+        rows: b.rows + 2 * margin,
+    }
+}
+
+/// The true layers of one cell.
+#[derive(Debug, Clone, Copy)]
+struct Truth {
+    slope: f64,
+    step: f64,
+    roughness: f64,
+}
+
+/// The layers of the terrain's true heights on a grid box's cells.
+struct TruthLayers {
+    cells: Vec<Option<Truth>>,
+    margin: usize,
+}
+
+impl TruthLayers {
+    fn new(terrain: &Heightmap, b: &GridBox, model: &LayerModel) -> Self {
+        let stencil = Stencil::new(model, b.resolution_m);
+        let margin = stencil.reach() as usize;
+        let outer = margin_box(b, margin);
+        let z: Vec<f64> = (0..outer.rows)
+            .flat_map(|r| (0..outer.cols).map(move |c| (c, r)))
+            .map(|(c, r)| {
+                let x = outer.origin_m[0] + c as f64 * outer.resolution_m;
+                let y = outer.origin_m[1] + r as f64 * outer.resolution_m;
+                terrain.height(x, y).unwrap_or(f64::NAN)
+            })
+            .collect();
+        let sd = vec![0.0; z.len()];
+        let grid = HeightGrid {
+            cols: outer.cols,
+            rows: outer.rows,
+            z: &z,
+            sd: &sd,
+        };
+        let cells = (0..b.rows)
+            .flat_map(|r| (0..b.cols).map(move |c| (c, r)))
+            .map(|(c, r)| {
+                cell_layers(&grid, &stencil, model, c + margin, r + margin).map(|l| Truth {
+                    slope: l.slope,
+                    step: l.step,
+                    roughness: l.roughness,
+                })
+            })
+            .collect();
+        Self { cells, margin }
+    }
+}
+
+/// Slope 95 % coverage when the heights of `plain` (the box with the footprint margin) are
+/// taken with other error correlation lengths.
+fn error_length_sweep(plain: &GridReply, truth: &TruthLayers, model: &LayerModel, n: usize) -> Vec<[f64; 2]> {
+    let z: Vec<f64> = plain.elevation_m.iter().map(|v| v.map_or(f64::NAN, f64::from)).collect();
+    let sd: Vec<f64> = plain
+        .variance_m2
+        .iter()
+        .map(|v| v.map_or(f64::NAN, |v| f64::from(v).max(0.0).sqrt()))
+        .collect();
+    let grid = HeightGrid {
+        cols: plain.cols as usize,
+        rows: plain.rows as usize,
+        z: &z,
+        sd: &sd,
+    };
+    [0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5]
+        .into_iter()
+        .map(|length| {
+            let m = LayerModel {
+                error_length_m: length,
+                ..*model
+            };
+            let stencil = Stencil::new(&m, plain.resolution_m);
+            let inside: Vec<bool> = (0..n * n)
+                .filter_map(|k| {
+                    let t = truth.cells[k]?;
+                    let (c, r) = (k % n + truth.margin, k / n + truth.margin);
+                    let l = cell_layers(&grid, &stencil, &m, c, r)?;
+                    Some((l.slope - t.slope).abs() <= 1.96 * l.slope_sd)
+                })
+                .collect();
+            [length, share(&inside)]
+        })
+        .collect()
+}
+
+/// What planning over one case gave.
+#[derive(Default)]
+struct Plan {
+    pairs: usize,
+    no_path: usize,
+    path_cells: usize,
+    unsafe_cells: usize,
+    ratios: Vec<f64>,
+}
+
+/// A* between `pairs` random start / goal cells over the cost layer and over the true labels.
+fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -> Plan {
+    let (cols, rows) = (reply.cols as usize, reply.rows as usize);
+    let res = reply.resolution_m;
+    let robot = &reply.robot;
+    let risk = reply.layer(Layer::TraversalCost).unwrap_or(&[]);
+    let blocked_map: Vec<bool> = reply.costmap.iter().map(|&c| c == 100 || c < 0).collect();
+    let observed: Vec<bool> = reply.costmap.iter().map(|&c| c >= 0).collect();
+    let untraversable: Vec<bool> = truth
+        .cells
+        .iter()
+        .map(|t| t.is_none_or(|t| t.slope > robot.max_slope_deg.to_radians() || t.step > robot.max_step_m))
+        .collect();
+    let blocked_truth: Vec<bool> = (0..cols * rows).map(|k| untraversable[k] || !observed[k]).collect();
+    let map_cost = |k: usize| 1.0 + RISK_WEIGHT * risk.get(k).copied().flatten().map_or(1.0, f64::from);
+    let free: Vec<usize> = (0..cols * rows)
+        .filter(|&k| !blocked_map[k] && !blocked_truth[k])
+        .collect();
+    let mut plan = Plan::default();
+    if free.len() < 2 {
+        return plan;
+    }
+    let mut rng = Pcg64::seed_from_u64(seed);
+    let mut attempts = 0;
+    while plan.pairs < pairs && attempts < 50 * pairs {
+        attempts += 1;
+        let (a, b) = (free[rng.random_range(0..free.len())], free[rng.random_range(0..free.len())]);
+        let d = ((a % cols) as f64 - (b % cols) as f64).hypot((a / cols) as f64 - (b / cols) as f64) * res;
+        if d < MIN_PAIR_DISTANCE_M {
+            continue;
+        }
+        let Some((_, oracle_len)) = astar(cols, rows, a, b, &blocked_truth, &|_| 1.0) else {
+            continue;
+        };
+        plan.pairs += 1;
+        match astar(cols, rows, a, b, &blocked_map, &map_cost) {
+            None => plan.no_path += 1,
+            Some((path, _)) => {
+                let length: f64 = path
+                    .windows(2)
+                    .map(|w| if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols { 2f64.sqrt() } else { 1.0 })
+                    .sum();
+                plan.path_cells += path.len();
+                plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
+                plan.ratios.push(length / oracle_len.max(1e-9));
+            }
+        }
+    }
+    plan
+}
+
+/// The cheapest 8-connected path from `a` to `b` avoiding `blocked`, each step its length in
+/// cells times the mean `cost` of its two cells; with the path's length in cells.
+fn astar(
+    cols: usize,
+    rows: usize,
+    a: usize,
+    b: usize,
+    blocked: &[bool],
+    cost: &dyn Fn(usize) -> f64,
+) -> Option<(Vec<usize>, f64)> {
+    const SCALE: f64 = 1000.0;
+    let (bx, by) = ((b % cols) as i64, (b / cols) as i64);
+    let (path, _) = pathfinding::prelude::astar(
+        &a,
+        |&k| {
+            let (x, y) = ((k % cols) as i64, (k / cols) as i64);
+            let mut next = Vec::with_capacity(8);
+            for (dx, dy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+                let (nx, ny) = (x + dx, y + dy);
+                if nx < 0 || ny < 0 || nx >= cols as i64 || ny >= rows as i64 {
+                    continue;
+                }
+                let j = ny as usize * cols + nx as usize;
+                if blocked[j] {
+                    continue;
+                }
+                let step = if dx != 0 && dy != 0 { 2f64.sqrt() } else { 1.0 };
+                next.push((j, (step * 0.5 * (cost(k) + cost(j)) * SCALE).round() as u64));
+            }
+            next
+        },
+        |&k| {
+            let (x, y) = ((k % cols) as i64, (k / cols) as i64);
+            let (dx, dy) = ((x - bx).abs(), (y - by).abs());
+            let octile = (dx.max(dy) - dx.min(dy)) as f64 + 2f64.sqrt() * dx.min(dy) as f64;
+            (octile * SCALE).floor() as u64
+        },
+        |&k| k == b,
+    )?;
+    let length = path
+        .windows(2)
+        .map(|w| if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols { 2f64.sqrt() } else { 1.0 })
+        .sum();
+    Some((path, length))
+}
+
+/// Root of the mean of squares (NaN-free entries only).
+fn rms(v: &[f64]) -> f64 {
+    let f: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    (f.iter().sum::<f64>() / f.len().max(1) as f64).sqrt()
+}
+
+/// Share of `true`.
+fn share(v: &[bool]) -> f64 {
+    v.iter().filter(|&&b| b).count() as f64 / v.len().max(1) as f64
+}
+
+/// Mean (NaN when empty).
+fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+/// Mean squared difference between probabilities and outcomes.
+fn brier(v: impl Iterator<Item = (f64, bool)>) -> f64 {
+    let s: Vec<f64> = v
+        .filter(|(p, _)| p.is_finite())
+        .map(|(p, l)| (p - if l { 1.0 } else { 0.0 }).powi(2))
+        .collect();
+    mean(&s)
+}
+
+/// (mean predicted, observed frequency, count) per tenth of predicted probability.
+fn reliability(v: &[(f64, bool)]) -> Vec<(f64, f64, usize)> {
+    let mut bins = [(0.0, 0usize, 0usize); 10];
+    for &(p, l) in v.iter().filter(|(p, _)| p.is_finite()) {
+        let b = ((p * 10.0) as usize).min(9);
+        bins[b].0 += p;
+        bins[b].1 += usize::from(l);
+        bins[b].2 += 1;
+    }
+    bins.iter()
+        .filter(|b| b.2 > 0)
+        .map(|&(s, hits, n)| (s / n as f64, hits as f64 / n as f64, n))
+        .collect()
+}
+
+/// Prints the report's table.
+pub fn print_layers(r: &LayersReport) {
+    println!(
+        "\nPlanner layers ({} pairs planned; robot: footprint {} m, slope ≤ {}°, step ≤ {} m)",
+        r.pairs, r.robot.footprint_radius_m, r.robot.max_slope_deg, r.robot.max_step_m
+    );
+    println!(
+        "  {:16} {:8} {:>7} {:>9} {:>7} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7}",
+        "terrain", "sensor", "cells", "slope°", "cov95", "sd°", "step", "stepcov", "brier", "base", "unsafe", "ratio"
+    );
+    for c in &r.cases {
+        println!(
+            "  {:16} {:8} {:>7} {:>9.2} {:>7.3} {:>8.2} {:>7.3} {:>8.3} {:>8.4} {:>8.4} {:>7.4} {:>7.3}",
+            c.terrain,
+            c.sensor,
+            c.cells,
+            c.slope_rmse_deg,
+            c.slope_cov95,
+            c.slope_mean_sd_deg,
+            c.step_rmse_m,
+            c.step_cov95,
+            c.risk_brier,
+            c.risk_brier_baseline,
+            c.path_cells[1] as f64 / c.path_cells[0].max(1) as f64,
+            c.path_length_ratio
+        );
+        println!(
+            "      tails (dof, scale) {:?}; cov95 by error length: {:?}",
+            c.tails, c.slope_cov95_by_error_length
+        );
+    }
+    println!(
+        "  pooled: slope RMSE {:.2}°, cov95 {:.3}; step RMSE {:.3} m; roughness RMSE {:.4} m; Brier {:.4} (baseline {:.4}); unsafe {:.4}; length ratio {:.3}; no path {} of {}",
+        r.slope_rmse_deg,
+        r.slope_cov95,
+        r.step_rmse_m,
+        r.roughness_rmse_m,
+        r.risk_brier,
+        r.risk_brier_baseline,
+        r.path_unsafe_fraction,
+        r.path_length_ratio,
+        r.no_path,
+        r.pairs
+    );
+}

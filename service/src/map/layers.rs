@@ -1,0 +1,477 @@
+//! Planner layers over a grid of heights with σ: slope, aspect, roughness and step over a
+//! robot's footprint, each with its σ by the delta method, and the risks and cost they give.
+//!
+//! Every layer is a function of the heights at the grid cells inside the footprint (a disc around
+//! the cell centre): slope and aspect from the least-squares plane, roughness the RMS of the
+//! plane's residuals, step the largest height difference. Their errors follow from the heights'
+//! errors through the Jacobian of that function (exact for the linear slope gradient, first order
+//! for the rest). The heights' errors are not independent: two cells a few centimetres apart are
+//! answered by the same GP experts from the same returns, so their errors move together, which is
+//! what keeps a smooth map's slope error small. The covariance between cells i and j is taken as
+//! σᵢ σⱼ ρ(dᵢⱼ), with σ the calibrated height σ of each answer and ρ a Matérn-3/2 correlation of
+//! length [`LayerModel::error_length_m`] (see docs/ARCHITECTURE.md "Planner layers").
+
+use super::scales::TailShape;
+use super::window::MapSnapshot;
+use nalgebra::{Matrix3, Vector3};
+use rangegp_proto::msg::RobotModel;
+
+/// Correlation length of height errors between nearby cells, metres.
+pub const ERROR_LENGTH_M: f64 = 0.5;
+
+/// A footprint needs at least this share of its cells answered to give layers.
+pub const MIN_KNOWN_SHARE: f64 = 0.5;
+
+/// How the layers are judged: the robot and the correlation of height errors.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LayerModel {
+    /// The robot's footprint and limits.
+    pub robot: RobotModel,
+    /// Correlation length of height errors between nearby cells, metres.
+    pub error_length_m: f64,
+    /// Shape of the calibrated errors (the snapshot's, learnt with its σ scales).
+    pub tails: TailShape,
+}
+
+impl LayerModel {
+    /// The layers of `robot` over `snapshot`'s maps: their error correlation length and the
+    /// tail shape learnt with their σ scales.
+    pub fn new(robot: RobotModel, snapshot: &MapSnapshot) -> Self {
+        Self {
+            robot,
+            error_length_m: ERROR_LENGTH_M,
+            tails: snapshot.scales.tails,
+        }
+    }
+}
+
+/// The cells of a footprint on a grid and the correlation of their height errors.
+#[derive(Debug, Clone)]
+pub struct Stencil {
+    /// Cell offsets (column, row) from the centre, within the footprint.
+    offsets: Vec<(i32, i32)>,
+    /// Offsets in metres.
+    uv: Vec<(f64, f64)>,
+    /// Error correlation between offsets a and b at `a * n + b`.
+    corr: Vec<f64>,
+    /// Largest |offset| along either axis, cells.
+    reach: i32,
+}
+
+impl Stencil {
+    /// The footprint of `model` sampled at `resolution_m` (positive; panics otherwise: callers
+    /// validate requests first).
+    pub fn new(model: &LayerModel, resolution_m: f64) -> Self {
+        assert!(resolution_m > 0.0, "resolution must be positive");
+        let r = model.robot.footprint_radius_m;
+        let reach = (r / resolution_m + 1e-9).floor() as i32;
+        let mut offsets = Vec::new();
+        for dj in -reach..=reach {
+            for di in -reach..=reach {
+                let d2 = f64::from(di * di + dj * dj) * resolution_m * resolution_m;
+                if d2 <= r * r * (1.0 + 1e-9) {
+                    offsets.push((di, dj));
+                }
+            }
+        }
+        let uv: Vec<(f64, f64)> = offsets
+            .iter()
+            .map(|&(di, dj)| (f64::from(di) * resolution_m, f64::from(dj) * resolution_m))
+            .collect();
+        let n = uv.len();
+        let mut corr = vec![0.0; n * n];
+        for a in 0..n {
+            for b in 0..n {
+                let d = (uv[a].0 - uv[b].0).hypot(uv[a].1 - uv[b].1);
+                corr[a * n + b] = matern32(d, model.error_length_m);
+            }
+        }
+        Self {
+            offsets,
+            uv,
+            corr,
+            reach,
+        }
+    }
+
+    /// Cells the grid needs beyond each side of the box for the footprints of its edge cells.
+    pub fn reach(&self) -> i32 {
+        self.reach
+    }
+
+    /// Cells in the footprint.
+    pub fn len(&self) -> usize {
+        self.offsets.len()
+    }
+
+    /// Whether the footprint is empty (never: the centre is always in it).
+    pub fn is_empty(&self) -> bool {
+        self.offsets.is_empty()
+    }
+}
+
+/// Matérn-3/2 correlation at distance `d` for length `l`.
+fn matern32(d: f64, l: f64) -> f64 {
+    let a = 3f64.sqrt() * d / l;
+    (1.0 + a) * (-a).exp()
+}
+
+/// Heights and their σ on a regular grid, row-major from the lower-left cell; NaN where no map
+/// answers.
+#[derive(Debug, Clone, Copy)]
+pub struct HeightGrid<'a> {
+    /// Cells along x.
+    pub cols: usize,
+    /// Cells along y.
+    pub rows: usize,
+    /// Height per cell, metres.
+    pub z: &'a [f64],
+    /// σ of the height per cell, metres.
+    pub sd: &'a [f64],
+}
+
+/// The layers at one cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CellLayers {
+    /// Slope angle, radians.
+    pub slope: f64,
+    /// σ of the slope, radians.
+    pub slope_sd: f64,
+    /// Downhill direction, radians counter-clockwise from +x.
+    pub aspect: f64,
+    /// Unit normal of the footprint's plane.
+    pub normal: [f64; 3],
+    /// RMS deviation from the plane, metres.
+    pub roughness: f64,
+    /// σ of the roughness, metres.
+    pub roughness_sd: f64,
+    /// Largest height difference, metres.
+    pub step: f64,
+    /// σ of the step, metres.
+    pub step_sd: f64,
+    /// P(slope > max slope).
+    pub slope_risk: f64,
+    /// P(step > max step).
+    pub step_risk: f64,
+    /// Share of the footprint unanswered.
+    pub unknown_risk: f64,
+    /// P(slope or step stops the robot): the larger of the two (they share their height errors).
+    pub risk: f64,
+    /// Traversal cost: `risk` and `unknown_risk` taken as independent.
+    pub traversal_cost: f64,
+}
+
+impl CellLayers {
+    /// The ROS costmap value of this cell: traversal cost × 100 rounded, 100 at and above
+    /// `lethal_risk`.
+    pub fn cost(&self, lethal_risk: f64) -> i8 {
+        if self.traversal_cost >= lethal_risk {
+            100
+        } else {
+            (self.traversal_cost * 100.0).round().clamp(0.0, 99.0) as i8
+        }
+    }
+}
+
+/// The layers of cell (col, row) of `grid`, or `None` when its centre is unanswered or less than
+/// [`MIN_KNOWN_SHARE`] of its footprint is answered (at least three cells, not all in a line).
+pub fn cell_layers(
+    grid: &HeightGrid,
+    stencil: &Stencil,
+    model: &LayerModel,
+    col: usize,
+    row: usize,
+) -> Option<CellLayers> {
+    let at = |i: i64, j: i64| -> Option<usize> {
+        let ok = i >= 0 && j >= 0 && (i as usize) < grid.cols && (j as usize) < grid.rows;
+        ok.then(|| j as usize * grid.cols + i as usize)
+    };
+    let centre = at(col as i64, row as i64)?;
+    if !grid.z[centre].is_finite() {
+        return None;
+    }
+    let mut known: Vec<usize> = Vec::with_capacity(stencil.len());
+    let mut z = Vec::with_capacity(stencil.len());
+    let mut sd = Vec::with_capacity(stencil.len());
+    for (k, &(di, dj)) in stencil.offsets.iter().enumerate() {
+        let Some(c) = at(col as i64 + i64::from(di), row as i64 + i64::from(dj)) else {
+            continue;
+        };
+        if grid.z[c].is_finite() && grid.sd[c].is_finite() {
+            known.push(k);
+            z.push(grid.z[c]);
+            sd.push(grid.sd[c].max(0.0));
+        }
+    }
+    let n = known.len();
+    let unknown_risk = 1.0 - n as f64 / stencil.len() as f64;
+    if n < 3 || (n as f64) < MIN_KNOWN_SHARE * stencil.len() as f64 {
+        return None;
+    }
+    // Least-squares plane z = a + gx u + gy v; rows of (XᵀX)⁻¹Xᵀ give gx and gy as weights on z.
+    let mut xtx = Matrix3::zeros();
+    for &k in &known {
+        let x = Vector3::new(1.0, stencil.uv[k].0, stencil.uv[k].1);
+        xtx += x * x.transpose();
+    }
+    let inv = xtx.try_inverse()?;
+    let mut coef = Vector3::zeros();
+    let mut wx = Vec::with_capacity(n);
+    let mut wy = Vec::with_capacity(n);
+    for (idx, &k) in known.iter().enumerate() {
+        let w = inv * Vector3::new(1.0, stencil.uv[k].0, stencil.uv[k].1);
+        coef += w * z[idx];
+        wx.push(w.y);
+        wy.push(w.z);
+    }
+    let (gx, gy) = (coef.y, coef.z);
+    let m = stencil.len();
+    // Covariance of two linear functionals with weights p and q on the known cells.
+    let cov = |p: &[f64], q: &[f64]| -> f64 {
+        let mut s = 0.0;
+        for (a, &ka) in known.iter().enumerate() {
+            let pa = p[a] * sd[a];
+            if pa == 0.0 {
+                continue;
+            }
+            let row = &stencil.corr[ka * m..ka * m + m];
+            for (b, &kb) in known.iter().enumerate() {
+                s += pa * q[b] * sd[b] * row[kb];
+            }
+        }
+        s
+    };
+    let (vxx, vyy, vxy) = (cov(&wx, &wx), cov(&wy, &wy), cov(&wx, &wy));
+    let g = gx.hypot(gy);
+    let g_var = if g > 1e-12 {
+        let (ux, uy) = (gx / g, gy / g);
+        ux * ux * vxx + 2.0 * ux * uy * vxy + uy * uy * vyy
+    } else {
+        0.5 * (vxx + vyy)
+    };
+    let g_sd = g_var.max(0.0).sqrt();
+    let slope = g.atan();
+    let slope_sd = g_sd / (1.0 + g * g);
+    let norm = (1.0 + g * g).sqrt();
+    let normal = [-gx / norm, -gy / norm, 1.0 / norm];
+    let aspect = (-gy).atan2(-gx);
+
+    let residuals: Vec<f64> = known
+        .iter()
+        .enumerate()
+        .map(|(idx, &k)| z[idx] - (coef.x + gx * stencil.uv[k].0 + gy * stencil.uv[k].1))
+        .collect();
+    let roughness = (residuals.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+    let roughness_sd = if roughness > 1e-12 {
+        let j: Vec<f64> = residuals.iter().map(|r| r / (n as f64 * roughness)).collect();
+        cov(&j, &j).max(0.0).sqrt()
+    } else {
+        0.0
+    };
+
+    let (mut hi, mut lo) = (0, 0);
+    for idx in 1..n {
+        if z[idx] > z[hi] {
+            hi = idx;
+        }
+        if z[idx] < z[lo] {
+            lo = idx;
+        }
+    }
+    let step = z[hi] - z[lo];
+    let rho = stencil.corr[known[hi] * m + known[lo]];
+    let step_sd = (sd[hi] * sd[hi] + sd[lo] * sd[lo] - 2.0 * rho * sd[hi] * sd[lo])
+        .max(0.0)
+        .sqrt();
+
+    let robot = &model.robot;
+    let slope_risk = model.tails.exceedance(g, g_sd, robot.max_slope_deg.to_radians().tan());
+    let step_risk = model.tails.exceedance(step, step_sd, robot.max_step_m);
+    let risk = slope_risk.max(step_risk);
+    let traversal_cost = 1.0 - (1.0 - risk) * (1.0 - unknown_risk);
+    Some(CellLayers {
+        slope,
+        slope_sd,
+        aspect,
+        normal,
+        roughness,
+        roughness_sd,
+        step,
+        step_sd,
+        slope_risk,
+        step_risk,
+        unknown_risk,
+        risk,
+        traversal_cost,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn model() -> LayerModel {
+        LayerModel {
+            robot: RobotModel {
+                footprint_radius_m: 0.3,
+                max_slope_deg: 20.0,
+                max_step_m: 0.2,
+                lethal_risk: 0.5,
+            },
+            error_length_m: 0.5,
+            tails: TailShape::default(),
+        }
+    }
+
+    fn plane(cols: usize, rows: usize, res: f64, gx: f64, gy: f64) -> Vec<f64> {
+        (0..rows)
+            .flat_map(|j| (0..cols).map(move |i| 1.0 + gx * i as f64 * res + gy * j as f64 * res))
+            .collect()
+    }
+
+    #[test]
+    fn a_plane_gives_its_slope_aspect_and_normal_with_no_roughness() {
+        let (res, gx, gy) = (0.1, 0.2, -0.1);
+        let z = plane(11, 11, res, gx, gy);
+        let sd = vec![0.0; z.len()];
+        let grid = HeightGrid {
+            cols: 11,
+            rows: 11,
+            z: &z,
+            sd: &sd,
+        };
+        let m = model();
+        let s = Stencil::new(&m, res);
+        assert_eq!(s.reach(), 3);
+        let l = cell_layers(&grid, &s, &m, 5, 5).expect("inside the grid");
+        assert!((l.slope - (gx.hypot(gy)).atan()).abs() < 1e-9);
+        assert!((l.aspect - (-gy).atan2(-gx)).abs() < 1e-9);
+        assert!(l.roughness < 1e-9);
+        assert!((l.step - (gx.abs() + gy.abs()) * 0.2 - 0.0).abs() < 0.1);
+        let n = Vector3::from(l.normal);
+        assert!((n.norm() - 1.0).abs() < 1e-12 && n.cross(&Vector3::new(-gx, -gy, 1.0)).norm() < 1e-9);
+        assert_eq!((l.slope_sd, l.slope_risk, l.unknown_risk), (0.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn the_slope_sigma_matches_the_spread_of_slopes_over_correlated_height_errors() {
+        // Height errors drawn with exactly the assumed covariance: the spread of the fitted
+        // slope gradient must match the σ the delta method gives.
+        use rand::{Rng, SeedableRng};
+        let (res, n) = (0.1, 9usize);
+        let m = model();
+        let s = Stencil::new(&m, res);
+        let cells = n * n;
+        let coords: Vec<(f64, f64)> = (0..cells)
+            .map(|c| ((c % n) as f64 * res, (c / n) as f64 * res))
+            .collect();
+        let sigma = 0.02;
+        let mut k = faer::Mat::<f64>::zeros(cells, cells);
+        for a in 0..cells {
+            for b in 0..cells {
+                let d = (coords[a].0 - coords[b].0).hypot(coords[a].1 - coords[b].1);
+                k[(a, b)] = sigma * sigma * matern32(d, m.error_length_m) + if a == b { 1e-12 } else { 0.0 };
+            }
+        }
+        let chol = k.llt(faer::Side::Lower).expect("positive definite");
+        let l = chol.L();
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let sd = vec![sigma; cells];
+        let base = plane(n, n, res, 0.3, 0.0);
+        let mut gx = Vec::new();
+        let mut predicted = 0.0;
+        for _ in 0..4000 {
+            let w: Vec<f64> = (0..cells)
+                .map(|_| {
+                    let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+                    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+                })
+                .collect();
+            let z: Vec<f64> = (0..cells)
+                .map(|a| base[a] + (0..=a).map(|b| l[(a, b)] * w[b]).sum::<f64>())
+                .collect();
+            let grid = HeightGrid {
+                cols: n,
+                rows: n,
+                z: &z,
+                sd: &sd,
+            };
+            let c = cell_layers(&grid, &s, &m, 4, 4).expect("inside the grid");
+            gx.push(c.slope.tan() * (-c.aspect.cos()));
+            predicted = c.slope_sd * (1.0 + c.slope.tan().powi(2));
+        }
+        let mean = gx.iter().sum::<f64>() / gx.len() as f64;
+        let spread = (gx.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / gx.len() as f64).sqrt();
+        assert!((mean - 0.3).abs() < 0.01, "mean gradient {mean}");
+        assert!(
+            (spread / predicted - 1.0).abs() < 0.15,
+            "spread {spread} against the delta method's {predicted}"
+        );
+    }
+
+    #[test]
+    fn unanswered_footprints_raise_the_unknown_risk_and_refuse_when_mostly_unknown() {
+        let res = 0.1;
+        let flat = plane(11, 11, res, 0.0, 0.0);
+        let sd = vec![0.01; flat.len()];
+        let m = model();
+        let s = Stencil::new(&m, res);
+        let mut z = flat.clone();
+        for j in 0..11 {
+            for i in 0..5 {
+                z[j * 11 + i] = f64::NAN;
+            }
+        }
+        let grid = HeightGrid {
+            cols: 11,
+            rows: 11,
+            z: &z,
+            sd: &sd,
+        };
+        let edge = cell_layers(&grid, &s, &m, 6, 5).expect("most of the footprint answered");
+        assert!(edge.unknown_risk > 0.0 && edge.traversal_cost >= edge.unknown_risk);
+        assert_eq!(cell_layers(&grid, &s, &m, 4, 5), None, "unanswered centre");
+        // Only the centre column answered: under half the footprint.
+        let column: Vec<f64> = (0..flat.len())
+            .map(|k| if k % 11 == 5 { flat[k] } else { f64::NAN })
+            .collect();
+        let sparse = HeightGrid {
+            cols: 11,
+            rows: 11,
+            z: &column,
+            sd: &sd,
+        };
+        assert_eq!(cell_layers(&sparse, &s, &m, 5, 5), None, "a line of cells");
+    }
+
+    #[test]
+    fn a_step_beyond_the_limit_is_lethal_and_flat_ground_is_free() {
+        let res = 0.1;
+        let mut z = plane(11, 11, res, 0.0, 0.0);
+        let sd = vec![0.01; z.len()];
+        let m = model();
+        let s = Stencil::new(&m, res);
+        let flat = HeightGrid {
+            cols: 11,
+            rows: 11,
+            z: &z.clone(),
+            sd: &sd,
+        };
+        let free = cell_layers(&flat, &s, &m, 5, 5).expect("answered");
+        assert_eq!(free.cost(0.5), 0);
+        for j in 0..11 {
+            for i in 6..11 {
+                z[j * 11 + i] += 0.35;
+            }
+        }
+        let stepped = HeightGrid {
+            cols: 11,
+            rows: 11,
+            z: &z,
+            sd: &sd,
+        };
+        let wall = cell_layers(&stepped, &s, &m, 5, 5).expect("answered");
+        assert!((wall.step - 0.35).abs() < 1e-9 && wall.step_risk > 0.99);
+        assert_eq!(wall.cost(0.5), 100);
+    }
+}
