@@ -18,7 +18,7 @@ import time
 
 import iceoryx2 as iox2
 
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 FLAG_NO_RETURN = 1
 FLAG_RING_COLUMN_VALID = 2
 

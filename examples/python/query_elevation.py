@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 
 
 def main() -> int:
