@@ -10,7 +10,10 @@ use rangegp_proto::msg::Ray;
 use rangegp_service::config::Config;
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
-use rangegp_service::map::{query, LocalRangeMap, Window};
+use rangegp_proto::msg::Layer;
+use rangegp_service::map::grid::{self, GridBox};
+use rangegp_service::map::layers::LayerModel;
+use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
 use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -59,6 +62,11 @@ pub struct QueryReport {
     pub elevation_cold_us: f64,
     /// Fraction of elevation points answered.
     pub answered: f64,
+    /// A 100 × 100 grid at 0.1 m around the robot with elevation and σ only, on the daemon's
+    /// `query.threads`, milliseconds (median of the passes).
+    pub grid_ms: f64,
+    /// The same grid with every planner layer (the footprint's margin included), milliseconds.
+    pub grid_all_layers_ms: f64,
 }
 
 fn per_item_us(repeats: usize, items: usize, mut pass: impl FnMut()) -> f64 {
@@ -90,6 +98,27 @@ fn cold_us(points: &[[f64; 2]], query: impl Fn(&[f64; 2])) -> f64 {
         .collect();
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Median milliseconds of a 100 × 100 grid at 0.1 m centred on `centre` with `layers`, on the
+/// daemon's query threads, as its grid handler computes it.
+fn grid_ms(snapshot: &MapSnapshot, config: &Config, centre: Vector3<f64>, layers: &[Layer], repeats: usize) -> f64 {
+    let grid_box = GridBox {
+        origin_m: [centre.x - 4.95, centre.y - 4.95],
+        resolution_m: 0.1,
+        cols: 100,
+        rows: 100,
+    };
+    let model = LayerModel::new(config.layers.robot(), snapshot);
+    let mut v: Vec<f64> = (0..repeats.max(1))
+        .map(|_| {
+            let t = Instant::now();
+            std::hint::black_box(grid::grid(snapshot, &grid_box, layers, &model, config.query.threads));
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Runs the query benchmark and writes `query.json`.
@@ -177,6 +206,8 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
             std::hint::black_box(query::elevation(&snapshot, p[0], p[1]));
         }),
         answered,
+        grid_ms: grid_ms(&snapshot, &config, centre, &[], opts.repeats),
+        grid_all_layers_ms: grid_ms(&snapshot, &config, centre, &Layer::ALL, opts.repeats),
     };
     std::fs::write(
         opts.out.join("query.json"),
@@ -205,4 +236,10 @@ pub fn print_query(r: &QueryReport) {
         r.aggregate_insert_ms
     );
     println!("  elevation, cold cache {:>7.1} µs", r.elevation_cold_us);
+    println!(
+        "  grid 100 × 100, elevation and σ {:>6.1} ms; every layer {:.1} ms (×{:.2}; daemon's query threads)",
+        r.grid_ms,
+        r.grid_all_layers_ms,
+        r.grid_all_layers_ms / r.grid_ms
+    );
 }
