@@ -325,9 +325,16 @@ fn draw_reliability(
         bins.iter().map(|&(p, f, _)| (p, f)),
         BLUE.stroke_width(2),
     ))?;
-    chart.draw_series(bins.iter().map(|&(p, f, _)| Circle::new((p, f), 4, BLUE.filled())))?;
+    chart.draw_series(
+        bins.iter()
+            .map(|&(p, f, _)| Circle::new((p, f), 4, BLUE.filled())),
+    )?;
     chart.draw_series(bins.iter().map(|&(p, f, n)| {
-        Text::new(format!("{n}"), (p + 0.01, (f - 0.04).max(0.0)), ("sans-serif", 11))
+        Text::new(
+            format!("{n}"),
+            (p + 0.01, (f - 0.04).max(0.0)),
+            ("sans-serif", 11),
+        )
     }))?;
     root.present()?;
     Ok(())

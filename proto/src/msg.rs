@@ -524,6 +524,8 @@ pub struct QueryLatencies {
     pub grid: LatencySummary,
     /// `query/view`.
     pub view: LatencySummary,
+    /// `query/slope`.
+    pub slope: LatencySummary,
     /// `status`.
     pub status: LatencySummary,
 }

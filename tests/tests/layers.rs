@@ -63,7 +63,9 @@ fn layers_follow_the_terrain_mark_a_box_lethal_and_a_point_slope_equals_its_cell
         let scan = w.scan(i, now_ns());
         h.publish_fitted(&mut publisher, &scan)?;
     }
-    h.wait_status("every scan fused", |s| s.scans_accepted == 4 && s.aggregate.inserts == 4)?;
+    h.wait_status("every scan fused", |s| {
+        s.scans_accepted == 4 && s.aggregate.inserts == 4
+    })?;
 
     // The point query names the resolution its footprint is sampled at: a grid at it, with a
     // cell centred on each point asked, gives the same values.
@@ -82,7 +84,11 @@ fn layers_follow_the_terrain_mark_a_box_lethal_and_a_point_slope_equals_its_cell
         robot: None,
     })?;
     let cells = rep.cols as usize * rep.rows as usize;
-    assert_eq!(rep.layers.len(), Layer::ALL.len() - 1, "every layer but cost, which is the costmap");
+    assert_eq!(
+        rep.layers.len(),
+        Layer::ALL.len() - 1,
+        "every layer but cost, which is the costmap"
+    );
     assert_eq!(rep.costmap.len(), cells);
     let layer = |l: Layer| rep.layer(l).expect("asked for");
     let cell_at = |p: [f64; 2]| {
@@ -102,10 +108,12 @@ fn layers_follow_the_terrain_mark_a_box_lethal_and_a_point_slope_equals_its_cell
     let truth = truth(&w.terrain, &rep);
     let (mut errors, mut inside) = (Vec::new(), 0);
     let mut free_costs = Vec::new();
-    for k in 0..cells {
+    for (k, true_layers) in truth.iter().enumerate() {
         let [x, y] = rep.centre(k as u32 % rep.cols, k as u32 / rep.cols);
         let near_box = (x - centre[0]).abs().max((y - centre[1]).abs()) < BOX.0 + 0.8;
-        let (Some(s), Some(sd), Some((ts, tstep))) = (layer(Layer::Slope)[k], layer(Layer::SlopeSigma)[k], truth[k]) else {
+        let (Some(s), Some(sd), Some((ts, tstep))) =
+            (layer(Layer::Slope)[k], layer(Layer::SlopeSigma)[k], *true_layers)
+        else {
             continue;
         };
         assert!(rep.costmap[k] >= 0, "a cell with layers has a cost");
@@ -119,21 +127,37 @@ fn layers_follow_the_terrain_mark_a_box_lethal_and_a_point_slope_equals_its_cell
             free_costs.push(rep.costmap[k]);
         }
     }
-    assert!(errors.len() > cells / 3, "{} of {cells} cells scored", errors.len());
+    assert!(
+        errors.len() > cells / 3,
+        "{} of {cells} cells scored",
+        errors.len()
+    );
     let e = rms(&errors);
     // The seed-000 scanner's sparse rings: 3.5° measured (the eval's VLP-16 on craters: 1.3°).
     assert!(e < 5.0, "slope RMSE {e}° over {} cells", errors.len());
     let cov = inside as f64 / errors.len() as f64;
     assert!(cov > 0.85, "slope 95 % coverage {cov}");
     let free = free_costs.iter().filter(|&&c| c < 50).count() as f64 / free_costs.len().max(1) as f64;
-    assert!(free > 0.95, "gentle ground below cost 50 in {free} of {} cells", free_costs.len());
+    assert!(
+        free > 0.95,
+        "gentle ground below cost 50 in {free} of {} cells",
+        free_costs.len()
+    );
 
     // Cells on the box's edge facing the sensors: a 40 cm step, lethal for a 20 cm robot.
     let toward = [last.x - centre[0], last.y - centre[1]];
     let n = toward[0].hypot(toward[1]);
-    let edge = [centre[0] + toward[0] / n * BOX.0, centre[1] + toward[1] / n * BOX.0];
+    let edge = [
+        centre[0] + toward[0] / n * BOX.0,
+        centre[1] + toward[1] / n * BOX.0,
+    ];
     let k = cell_at(edge);
-    assert_eq!(rep.costmap[k], 100, "the box's edge: step {:?}", layer(Layer::Step)[k]);
+    assert_eq!(
+        rep.costmap[k],
+        100,
+        "the box's edge: step {:?}",
+        layer(Layer::Step)[k]
+    );
     assert!(layer(Layer::StepRisk)[k].expect("observed") > 0.9);
     Ok(())
 }
@@ -191,6 +215,11 @@ fn bad_layer_requests_and_old_clients_are_refused_with_a_reason() -> anyhow::Res
     let strict = h.client.grid_request(&req)?;
     assert_eq!(strict.robot, timid);
     let lethal = |r: &GridReply| r.costmap.iter().filter(|&&c| c == 100).count();
-    assert!(lethal(&strict) > lethal(&default), "{} vs {}", lethal(&strict), lethal(&default));
+    assert!(
+        lethal(&strict) > lethal(&default),
+        "{} vs {}",
+        lethal(&strict),
+        lethal(&default)
+    );
     Ok(())
 }

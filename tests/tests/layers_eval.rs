@@ -11,10 +11,19 @@ use rangegp_lab::eval::FamilyOptions;
 fn quick_layers_meet_the_coverage_risk_and_planning_bars() -> anyhow::Result<()> {
     let out = std::env::temp_dir().join(format!("rangegp-layers-eval-{}", std::process::id()));
     let r = run_layers(&FamilyOptions::quick(), &out)?;
-    assert!(r.quick && r.cases.iter().all(|c| c.cells > 10_000), "{:?}", r.cases);
+    assert!(
+        r.quick && r.cases.iter().all(|c| c.cells > 10_000),
+        "{:?}",
+        r.cases
+    );
     assert!(out.join("layers_risk_reliability.png").exists());
     std::fs::remove_dir_all(&out).ok();
     assert_eq!(failures(&r), Vec::<String>::new(), "{r:#?}");
-    assert!(r.no_path * 10 <= r.pairs, "{} of {} pairs without a path", r.no_path, r.pairs);
+    assert!(
+        r.no_path * 10 <= r.pairs,
+        "{} of {} pairs without a path",
+        r.no_path,
+        r.pairs
+    );
     Ok(())
 }

@@ -103,7 +103,13 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     // A path over the cost layer of the flat ground ahead of the sensor.
     let out = Command::new(&python)
         .arg(examples.join("plan_path.py"))
-        .args(["--connect", &h.endpoint, "--map-id", &h.config.map_id, "--timeout"])
+        .args([
+            "--connect",
+            &h.endpoint,
+            "--map-id",
+            &h.config.map_id,
+            "--timeout",
+        ])
         .arg(WAIT.as_secs().to_string())
         .args(["--bbox", "4", "-2", "10", "4", "--res", "0.1"])
         .args(["--start", "5", "0", "--goal", "9", "2"])
@@ -116,14 +122,23 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     let plan: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     let path = plan["path_m"].as_array().expect("a path");
     let (first, last) = (&path[0], &path[path.len() - 1]);
-    assert!((first[0].as_f64().expect("x") - 5.0).abs() < 0.06, "starts at {first}");
-    assert!((last[1].as_f64().expect("y") - 2.0).abs() < 0.06, "ends at {last}");
+    assert!(
+        (first[0].as_f64().expect("x") - 5.0).abs() < 0.06,
+        "starts at {first}"
+    );
+    assert!(
+        (last[1].as_f64().expect("y") - 2.0).abs() < 0.06,
+        "ends at {last}"
+    );
     let length = plan["length_m"].as_f64().expect("length");
     let straight = (4f64).hypot(2.0);
     assert!(
         (straight - 0.1..straight * 1.15).contains(&length),
         "a {length} m path over flat ground for {straight} m"
     );
-    assert!(plan["max_cost"].as_i64().expect("cost") < 50, "flat ground is free: {plan}");
+    assert!(
+        plan["max_cost"].as_i64().expect("cost") < 50,
+        "flat ground is free: {plan}"
+    );
     Ok(())
 }

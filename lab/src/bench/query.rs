@@ -6,11 +6,11 @@ use anyhow::Result;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
+use rangegp_proto::msg::Layer;
 use rangegp_proto::msg::Ray;
 use rangegp_service::config::Config;
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
-use rangegp_proto::msg::Layer;
 use rangegp_service::map::grid::{self, GridBox};
 use rangegp_service::map::layers::LayerModel;
 use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
@@ -102,7 +102,13 @@ fn cold_us(points: &[[f64; 2]], query: impl Fn(&[f64; 2])) -> f64 {
 
 /// Median milliseconds of a 100 × 100 grid at 0.1 m centred on `centre` with `layers`, on the
 /// daemon's query threads, as its grid handler computes it.
-fn grid_ms(snapshot: &MapSnapshot, config: &Config, centre: Vector3<f64>, layers: &[Layer], repeats: usize) -> f64 {
+fn grid_ms(
+    snapshot: &MapSnapshot,
+    config: &Config,
+    centre: Vector3<f64>,
+    layers: &[Layer],
+    repeats: usize,
+) -> f64 {
     let grid_box = GridBox {
         origin_m: [centre.x - 4.95, centre.y - 4.95],
         resolution_m: 0.1,
@@ -113,7 +119,13 @@ fn grid_ms(snapshot: &MapSnapshot, config: &Config, centre: Vector3<f64>, layers
     let mut v: Vec<f64> = (0..repeats.max(1))
         .map(|_| {
             let t = Instant::now();
-            std::hint::black_box(grid::grid(snapshot, &grid_box, layers, &model, config.query.threads));
+            std::hint::black_box(grid::grid(
+                snapshot,
+                &grid_box,
+                layers,
+                &model,
+                config.query.threads,
+            ));
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();

@@ -8,7 +8,9 @@ use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::plot::{Heatmap, Limits, Raster};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
-use rangegp_proto::msg::{Camera, GridReply, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest};
+use rangegp_proto::msg::{
+    Camera, GridReply, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest,
+};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
@@ -269,18 +271,90 @@ fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
     for layer in &rep.layers {
         let (title, unit, convert, limits, gradient): (String, &str, fn(f64) -> f64, Limits, _) =
             match layer.layer {
-                Layer::Slope => ("Slope over the footprint".into(), "slope (°)", f64::to_degrees, Limits::Robust, colorous::VIRIDIS),
-                Layer::SlopeSigma => ("σ of the slope".into(), "σ (°)", f64::to_degrees, Limits::Robust, colorous::MAGMA),
-                Layer::Aspect => ("Aspect (downhill, from +x)".into(), "aspect (°)", f64::to_degrees, Limits::Fixed(-180.0, 180.0), colorous::SINEBOW),
-                Layer::Roughness => ("Roughness (RMS off the footprint's plane)".into(), "roughness (m)", identity, Limits::Robust, colorous::VIRIDIS),
-                Layer::RoughnessSigma => ("σ of the roughness".into(), "σ (m)", identity, Limits::Robust, colorous::MAGMA),
-                Layer::Step => ("Step across the footprint".into(), "step (m)", identity, Limits::Robust, colorous::VIRIDIS),
-                Layer::StepSigma => ("σ of the step".into(), "σ (m)", identity, Limits::Robust, colorous::MAGMA),
-                Layer::SlopeRisk => (format!("P(slope > {}°)", robot.max_slope_deg), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
-                Layer::StepRisk => (format!("P(step > {} m)", robot.max_step_m), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
-                Layer::UnknownRisk => ("Share of the footprint unknown".into(), "share", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
-                Layer::Risk => ("P(slope or step over the limit)".into(), "probability", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
-                Layer::TraversalCost | Layer::Cost => ("Traversal cost (risk and unknown)".into(), "cost", identity, Limits::Fixed(0.0, 1.0), colorous::INFERNO),
+                Layer::Slope => (
+                    "Slope over the footprint".into(),
+                    "slope (°)",
+                    f64::to_degrees,
+                    Limits::Robust,
+                    colorous::VIRIDIS,
+                ),
+                Layer::SlopeSigma => (
+                    "σ of the slope".into(),
+                    "σ (°)",
+                    f64::to_degrees,
+                    Limits::Robust,
+                    colorous::MAGMA,
+                ),
+                Layer::Aspect => (
+                    "Aspect (downhill, from +x)".into(),
+                    "aspect (°)",
+                    f64::to_degrees,
+                    Limits::Fixed(-180.0, 180.0),
+                    colorous::SINEBOW,
+                ),
+                Layer::Roughness => (
+                    "Roughness (RMS off the footprint's plane)".into(),
+                    "roughness (m)",
+                    identity,
+                    Limits::Robust,
+                    colorous::VIRIDIS,
+                ),
+                Layer::RoughnessSigma => (
+                    "σ of the roughness".into(),
+                    "σ (m)",
+                    identity,
+                    Limits::Robust,
+                    colorous::MAGMA,
+                ),
+                Layer::Step => (
+                    "Step across the footprint".into(),
+                    "step (m)",
+                    identity,
+                    Limits::Robust,
+                    colorous::VIRIDIS,
+                ),
+                Layer::StepSigma => (
+                    "σ of the step".into(),
+                    "σ (m)",
+                    identity,
+                    Limits::Robust,
+                    colorous::MAGMA,
+                ),
+                Layer::SlopeRisk => (
+                    format!("P(slope > {}°)", robot.max_slope_deg),
+                    "probability",
+                    identity,
+                    Limits::Fixed(0.0, 1.0),
+                    colorous::INFERNO,
+                ),
+                Layer::StepRisk => (
+                    format!("P(step > {} m)", robot.max_step_m),
+                    "probability",
+                    identity,
+                    Limits::Fixed(0.0, 1.0),
+                    colorous::INFERNO,
+                ),
+                Layer::UnknownRisk => (
+                    "Share of the footprint unknown".into(),
+                    "share",
+                    identity,
+                    Limits::Fixed(0.0, 1.0),
+                    colorous::INFERNO,
+                ),
+                Layer::Risk => (
+                    "P(slope or step over the limit)".into(),
+                    "probability",
+                    identity,
+                    Limits::Fixed(0.0, 1.0),
+                    colorous::INFERNO,
+                ),
+                Layer::TraversalCost | Layer::Cost => (
+                    "Traversal cost (risk and unknown)".into(),
+                    "cost",
+                    identity,
+                    Limits::Fixed(0.0, 1.0),
+                    colorous::INFERNO,
+                ),
             };
         let raster = Raster::from_grid(rep, &layer.values, convert);
         Heatmap::new(title, unit)
@@ -295,7 +369,10 @@ fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
             .map(|&c| (c >= 0).then_some(f32::from(c)))
             .collect();
         Heatmap::new(
-            format!("Costmap (100 lethal at risk ≥ {}; grey unknown)", robot.lethal_risk),
+            format!(
+                "Costmap (100 lethal at risk ≥ {}; grey unknown)",
+                robot.lethal_risk
+            ),
             "cost (0-100)",
         )
         .limits(Limits::Fixed(0.0, 100.0))

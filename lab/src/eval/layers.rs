@@ -176,7 +176,10 @@ pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
             path_cells += case.path_cells[0];
             unsafe_cells += case.path_cells[1];
             no_path += case.no_path;
-            ratios.extend(std::iter::repeat_n(case.path_length_ratio, case.pairs - case.no_path));
+            ratios.extend(std::iter::repeat_n(
+                case.path_length_ratio,
+                case.pairs - case.no_path,
+            ));
             pool.slope_err2.extend(case_pool.slope_err2);
             pool.slope_in95.extend(case_pool.slope_in95);
             pool.slope_in68.extend(case_pool.slope_in68);
@@ -283,7 +286,9 @@ fn run_case(
         },
     )?;
     let model = &LayerModel::new(robot, &snapshot);
-    let last = poses.last().map_or([0.0, 0.0], |p| [p.translation.x, p.translation.y]);
+    let last = poses
+        .last()
+        .map_or([0.0, 0.0], |p| [p.translation.x, p.translation.y]);
     let n = (BOX_M / RESOLUTION_M).round() as usize;
     let grid_box = GridBox {
         origin_m: [
@@ -294,7 +299,13 @@ fn run_case(
         cols: n,
         rows: n,
     };
-    let reply = grid::grid(&snapshot, &grid_box, &Layer::ALL, model, rayon::current_num_threads());
+    let reply = grid::grid(
+        &snapshot,
+        &grid_box,
+        &Layer::ALL,
+        model,
+        rayon::current_num_threads(),
+    );
     let truth = TruthLayers::new(terrain, &grid_box, model);
     let plain = grid::grid(
         &snapshot,
@@ -328,11 +339,18 @@ fn run_case(
         sd_sum += sd.to_degrees();
         let st = step[k].map_or(f64::NAN, f64::from);
         pool.step_err2.push((st - t.step).powi(2));
-        pool.rough_err2.push((rough[k].map_or(f64::NAN, f64::from) - t.roughness).powi(2));
-        let (steep, high) = (t.slope > robot.max_slope_deg.to_radians(), t.step > robot.max_step_m);
-        pool.risk.push((risk[k].map_or(f64::NAN, f64::from), steep || high));
-        pool.slope_risk.push((slope_risk[k].map_or(f64::NAN, f64::from), steep));
-        pool.step_risk.push((step_risk[k].map_or(f64::NAN, f64::from), high));
+        pool.rough_err2
+            .push((rough[k].map_or(f64::NAN, f64::from) - t.roughness).powi(2));
+        let (steep, high) = (
+            t.slope > robot.max_slope_deg.to_radians(),
+            t.step > robot.max_step_m,
+        );
+        pool.risk
+            .push((risk[k].map_or(f64::NAN, f64::from), steep || high));
+        pool.slope_risk
+            .push((slope_risk[k].map_or(f64::NAN, f64::from), steep));
+        pool.step_risk
+            .push((step_risk[k].map_or(f64::NAN, f64::from), high));
         let over = s > robot.max_slope_deg.to_radians() || st > robot.max_step_m;
         pool.baseline.push(if over { 1.0 } else { 0.0 });
     }
@@ -347,7 +365,12 @@ fn run_case(
             .collect::<Vec<_>>(),
     );
     let sweep = error_length_sweep(&plain, &truth, model, n);
-    let plan = plan_pairs(&reply, &truth, pairs, seed ^ spec.name.len() as u64 ^ preset.name.len() as u64);
+    let plan = plan_pairs(
+        &reply,
+        &truth,
+        pairs,
+        seed ^ spec.name.len() as u64 ^ preset.name.len() as u64,
+    );
     let scored = pool.slope_err2.len();
     let case = LayerCase {
         terrain: spec.name.clone(),
@@ -435,7 +458,11 @@ impl TruthLayers {
 /// Slope 95 % coverage when the heights of `plain` (the box with the footprint margin) are
 /// taken with other error correlation lengths.
 fn error_length_sweep(plain: &GridReply, truth: &TruthLayers, model: &LayerModel, n: usize) -> Vec<[f64; 2]> {
-    let z: Vec<f64> = plain.elevation_m.iter().map(|v| v.map_or(f64::NAN, f64::from)).collect();
+    let z: Vec<f64> = plain
+        .elevation_m
+        .iter()
+        .map(|v| v.map_or(f64::NAN, f64::from))
+        .collect();
     let sd: Vec<f64> = plain
         .variance_m2
         .iter()
@@ -491,7 +518,9 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
         .iter()
         .map(|t| t.is_none_or(|t| t.slope > robot.max_slope_deg.to_radians() || t.step > robot.max_step_m))
         .collect();
-    let blocked_truth: Vec<bool> = (0..cols * rows).map(|k| untraversable[k] || !observed[k]).collect();
+    let blocked_truth: Vec<bool> = (0..cols * rows)
+        .map(|k| untraversable[k] || !observed[k])
+        .collect();
     let map_cost = |k: usize| 1.0 + RISK_WEIGHT * risk.get(k).copied().flatten().map_or(1.0, f64::from);
     let free: Vec<usize> = (0..cols * rows)
         .filter(|&k| !blocked_map[k] && !blocked_truth[k])
@@ -504,7 +533,10 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
     let mut attempts = 0;
     while plan.pairs < pairs && attempts < 50 * pairs {
         attempts += 1;
-        let (a, b) = (free[rng.random_range(0..free.len())], free[rng.random_range(0..free.len())]);
+        let (a, b) = (
+            free[rng.random_range(0..free.len())],
+            free[rng.random_range(0..free.len())],
+        );
         let d = ((a % cols) as f64 - (b % cols) as f64).hypot((a / cols) as f64 - (b / cols) as f64) * res;
         if d < MIN_PAIR_DISTANCE_M {
             continue;
@@ -518,7 +550,13 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
             Some((path, _)) => {
                 let length: f64 = path
                     .windows(2)
-                    .map(|w| if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols { 2f64.sqrt() } else { 1.0 })
+                    .map(|w| {
+                        if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols {
+                            2f64.sqrt()
+                        } else {
+                            1.0
+                        }
+                    })
                     .sum();
                 plan.path_cells += path.len();
                 plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
@@ -546,7 +584,16 @@ fn astar(
         |&k| {
             let (x, y) = ((k % cols) as i64, (k / cols) as i64);
             let mut next = Vec::with_capacity(8);
-            for (dx, dy) in [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)] {
+            for (dx, dy) in [
+                (-1, -1),
+                (0, -1),
+                (1, -1),
+                (-1, 0),
+                (1, 0),
+                (-1, 1),
+                (0, 1),
+                (1, 1),
+            ] {
                 let (nx, ny) = (x + dx, y + dy);
                 if nx < 0 || ny < 0 || nx >= cols as i64 || ny >= rows as i64 {
                     continue;
@@ -570,7 +617,13 @@ fn astar(
     )?;
     let length = path
         .windows(2)
-        .map(|w| if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols { 2f64.sqrt() } else { 1.0 })
+        .map(|w| {
+            if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols {
+                2f64.sqrt()
+            } else {
+                1.0
+            }
+        })
         .sum();
     Some((path, length))
 }
@@ -627,7 +680,18 @@ pub fn print_layers(r: &LayersReport) {
     );
     println!(
         "  {:16} {:8} {:>7} {:>9} {:>7} {:>8} {:>7} {:>8} {:>8} {:>8} {:>7} {:>7}",
-        "terrain", "sensor", "cells", "slope°", "cov95", "sd°", "step", "stepcov", "brier", "base", "unsafe", "ratio"
+        "terrain",
+        "sensor",
+        "cells",
+        "slope°",
+        "cov95",
+        "sd°",
+        "step",
+        "stepcov",
+        "brier",
+        "base",
+        "unsafe",
+        "ratio"
     );
     for c in &r.cases {
         println!(

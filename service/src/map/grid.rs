@@ -4,9 +4,7 @@
 use super::layers::{cell_layers, CellLayers, HeightGrid, LayerModel, Stencil};
 use super::query;
 use super::window::MapSnapshot;
-use rangegp_proto::msg::{
-    ElevationItem, GridLayer, GridReply, Layer, Refusal, SlopeItem, SlopeReply,
-};
+use rangegp_proto::msg::{ElevationItem, GridLayer, GridReply, Layer, Refusal, SlopeItem, SlopeReply};
 use rangegp_proto::PROTOCOL_VERSION;
 
 /// Footprint samples per radius of a point slope query: its grid's resolution is the radius
@@ -51,9 +49,7 @@ pub fn grid(
     let o = grid_box.origin_m;
     let m = margin as f64;
     let centres: Vec<[f64; 2]> = (0..rows)
-        .flat_map(|r| {
-            (0..cols).map(move |c| [o[0] + (c as f64 - m) * res, o[1] + (r as f64 - m) * res])
-        })
+        .flat_map(|r| (0..cols).map(move |c| [o[0] + (c as f64 - m) * res, o[1] + (r as f64 - m) * res]))
         .collect();
     let items = query::par_map(&centres, threads, |p| query::elevation(snapshot, p[0], p[1]));
     let inner: Vec<(usize, usize)> = (0..grid_box.rows)
@@ -88,7 +84,9 @@ pub fn grid(
         z: &z,
         sd: &sd,
     };
-    let cells = query::par_map(&inner, threads, |&(c, r)| cell_layers(&heights, &stencil, model, c, r));
+    let cells = query::par_map(&inner, threads, |&(c, r)| {
+        cell_layers(&heights, &stencil, model, c, r)
+    });
     for &layer in layers {
         if layer == Layer::Cost {
             reply.costmap = cells
@@ -98,10 +96,7 @@ pub fn grid(
         } else {
             reply.layers.push(GridLayer {
                 layer,
-                values: cells
-                    .iter()
-                    .map(|l| l.map(|l| value(&l, layer) as f32))
-                    .collect(),
+                values: cells.iter().map(|l| l.map(|l| value(&l, layer) as f32)).collect(),
             });
         }
     }
@@ -198,12 +193,12 @@ pub fn slopes(snapshot: &MapSnapshot, points: &[[f64; 2]], model: &LayerModel, t
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::scales::TailShape;
     use crate::map::test_support::{family_terrain, params, scan_of};
     use crate::map::{LocalRangeMap, Window};
-    use rangegp_proto::msg::RobotModel;
-    use crate::map::scales::TailShape;
     use nalgebra::Isometry3;
     use rangegp_proto::msg::Provenance;
+    use rangegp_proto::msg::RobotModel;
     use std::sync::Arc;
 
     /// Cells some map answered.

@@ -285,7 +285,9 @@ pub fn cell_layers(
         .sqrt();
 
     let robot = &model.robot;
-    let slope_risk = model.tails.exceedance(g, g_sd, robot.max_slope_deg.to_radians().tan());
+    let slope_risk = model
+        .tails
+        .exceedance(g, g_sd, robot.max_slope_deg.to_radians().tan());
     let step_risk = model.tails.exceedance(step, step_sd, robot.max_step_m);
     let risk = slope_risk.max(step_risk);
     let traversal_cost = 1.0 - (1.0 - risk) * (1.0 - unknown_risk);

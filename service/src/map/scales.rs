@@ -125,10 +125,13 @@ impl TailShape {
         let gaussian = {
             let scale = 1.0 / distrs::Normal::ppf(q, 0.0, 1.0);
             let err = (2.0 * distrs::Normal::cdf(1.96 / scale, 0.0, 1.0) - 1.0 - cov95).abs();
-            (err, Self {
-                dof: f64::INFINITY,
-                scale,
-            })
+            (
+                err,
+                Self {
+                    dof: f64::INFINITY,
+                    scale,
+                },
+            )
         };
         TAIL_DOFS
             .iter()
@@ -146,7 +149,7 @@ impl TailShape {
     /// P(X > limit) for X of mean `mean` and calibrated σ `sd` with this shape; a step at the
     /// limit when `sd` is 0.
     pub fn exceedance(&self, mean: f64, sd: f64, limit: f64) -> f64 {
-        if !(sd > 0.0) {
+        if sd.is_nan() || sd <= 0.0 {
             return if mean > limit { 1.0 } else { 0.0 };
         }
         let x = (limit - mean) / (self.scale * sd);

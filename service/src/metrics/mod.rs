@@ -232,6 +232,7 @@ impl Metrics {
             ray: self.query(Some(QueryKind::Ray)).summary(),
             grid: self.query(Some(QueryKind::Grid)).summary(),
             view: self.query(Some(QueryKind::View)).summary(),
+            slope: self.query(Some(QueryKind::Slope)).summary(),
             status: self.query(None).summary(),
         }
     }
