@@ -7,8 +7,9 @@ use rangegp_client::ClientError;
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{ErrorCode, GridReply, GridRequest, Layer, RobotModel};
 use rangegp_proto::PROTOCOL_VERSION;
-use rangegp_service::map::layers::{cell_layers, HeightGrid, LayerModel, Stencil, ERROR_LENGTH_M};
+use rangegp_service::map::layers::{cell_layers, HeightGrid, LayerModel, Stencil};
 use rangegp_service::map::scales::TailShape;
+use rangegp_service::map::scales::DEFAULT_ERROR_LENGTH_M;
 use rangegp_sim::Heightmap;
 use rangegp_tests::{rms, world, Harness};
 
@@ -19,7 +20,7 @@ const BOX: (f64, f64) = (0.6, 0.4);
 fn truth(terrain: &Heightmap, rep: &GridReply) -> Vec<Option<(f64, f64)>> {
     let model = LayerModel {
         robot: rep.robot,
-        error_length_m: ERROR_LENGTH_M,
+        error_length_m: DEFAULT_ERROR_LENGTH_M,
         tails: TailShape::default(),
     };
     let stencil = Stencil::new(&model, rep.resolution_m);

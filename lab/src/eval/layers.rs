@@ -30,8 +30,8 @@ pub const SLOPE_COV95: (f64, f64) = (0.90, 0.98);
 /// Planned path cells that are truly untraversable, at most.
 pub const MAX_PATH_UNSAFE: f64 = 0.01;
 /// The same in the quick form, whose three terrains give the steepest (fBm at 30°) a third of
-/// the pairs where the full run gives it a ninth: 1.5 × the 0.019 the quick form measured
-/// (2026-11-24, seed 0) while the full run met [`MAX_PATH_UNSAFE`] (0.0067).
+/// the pairs where the full run gives it a ninth: 1.3 × the 0.023 the quick form measured
+/// (2026-11-24, seed 0) while the full run met [`MAX_PATH_UNSAFE`] (0.0096).
 pub const QUICK_MAX_PATH_UNSAFE: f64 = 0.03;
 /// Planned path length over the oracle's, at most.
 pub const MAX_PATH_LENGTH_RATIO: f64 = 1.15;
@@ -85,6 +85,8 @@ pub struct LayerCase {
     pub path_length_ratio: f64,
     /// The tail shape the snapshot learnt (degrees of freedom, scale).
     pub tails: [f64; 2],
+    /// The correlation length of height errors the snapshot learnt, metres.
+    pub error_length_m: f64,
     /// Slope 95 % coverage with other correlation lengths of the height errors (metres,
     /// coverage): how much the σ depends on that length.
     pub slope_cov95_by_error_length: Vec<[f64; 2]>,
@@ -392,6 +394,7 @@ fn run_case(
         path_length_ratio: mean(&plan.ratios),
         slope_cov95_by_error_length: sweep,
         tails: [model.tails.dof, model.tails.scale],
+        error_length_m: model.error_length_m,
     };
     Ok((case, pool))
 }
@@ -710,8 +713,8 @@ pub fn print_layers(r: &LayersReport) {
             c.path_length_ratio
         );
         println!(
-            "      tails (dof, scale) {:?}; cov95 by error length: {:?}",
-            c.tails, c.slope_cov95_by_error_length
+            "      error length {:.3} m, tails (dof, scale) {:?}; cov95 by error length: {:?}",
+            c.error_length_m, c.tails, c.slope_cov95_by_error_length
         );
     }
     println!(

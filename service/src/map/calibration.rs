@@ -8,8 +8,12 @@
 //! sensor) over the last scans; within a cell, each fifth of them by the answer's own σ gets the
 //! factor on σ whose 68 % and 95 % intervals cover that share. Nothing here knows the terrain or
 //! the sensor: it adapts to whatever the robot drives on, and follows it when the terrain changes
-//! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration".
+//! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
+//! [`PAIR_EVERY_SCANS`] scans, pairs of returns a footprint apart also measure how the maps'
+//! errors correlate ([`super::correlation`]), and the held residuals give the errors' tail shape
+//! ([`TailShape`]): what planner layers turn height σ into slope σ and risks with.
 
+use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
 use super::query::{self, Answerer};
 use super::scales::{
     bin_of, class_of, BinScale, ScaleTable, SigmaScales, TailShape, BINS, CLASSES, SIGMA_GROUPS,
@@ -19,7 +23,8 @@ use super::LocalRangeMap;
 use crate::gp::sphere;
 use crate::scan::ScanInput;
 use nalgebra::Vector3;
-use std::collections::VecDeque;
+use rangegp_proto::msg::Source;
+use std::collections::{HashMap, VecDeque};
 
 /// Step of the finite differences that give a return's surface normal, radians (0.1°).
 const NORMAL_STEP_RAD: f64 = 1.745e-3;
@@ -54,6 +59,7 @@ type Residuals = [[VecDeque<Residual>; BINS]; CLASSES];
 pub struct Calibrator {
     window: Residuals,
     aggregate: Residuals,
+    correlation: CorrelationLearner,
     scales: SigmaScales,
 }
 
@@ -121,7 +127,73 @@ impl Calibrator {
         if touched[0] || touched[1] {
             self.scales.tails = self.tails();
         }
+        if scan.sequence.is_multiple_of(PAIR_EVERY_SCANS) {
+            let pairs = self.pairs(snapshot, scan, &sample);
+            self.correlation.observe(&pairs);
+            self.scales.correlation = self.correlation.correlation();
+        }
         answered
+    }
+
+    /// Pairs of `scan`'s returns a footprint apart ([`PAIR_SEPARATION_M`]), each sampled return
+    /// with the nearest other return in that band, both answered by `snapshot` (the maps before
+    /// the scan) with σ calibrated by the current scales.
+    fn pairs(
+        &self,
+        snapshot: &MapSnapshot,
+        scan: &ScanInput,
+        sample: &[(Vector3<f64>, f64, f64)],
+    ) -> Vec<PairResidual> {
+        let cell = PAIR_SEPARATION_M.1;
+        let key = |p: &Vector3<f64>| ((p.x / cell).floor() as i64, (p.y / cell).floor() as i64);
+        let origin = scan.pose.translation.vector;
+        let mut cells: HashMap<(i64, i64), Vec<Return>> = HashMap::new();
+        for ray in &scan.rays {
+            let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+            let dir = scan.pose.rotation * Vector3::new(x, y, z);
+            let p = origin + dir * ray.range;
+            let sd = scan.range_noise_per_m * ray.range * dir.z;
+            cells.entry(key(&p)).or_default().push((p, sd * sd));
+        }
+        let partner = |p: &Vector3<f64>| -> Option<Return> {
+            let (i, j) = key(p);
+            let mut best: Option<(f64, Vector3<f64>, f64)> = None;
+            for di in -1..=1 {
+                for dj in -1..=1 {
+                    for &(q, noise) in cells.get(&(i + di, j + dj)).into_iter().flatten() {
+                        let d = (q.x - p.x).hypot(q.y - p.y);
+                        let inside = (PAIR_SEPARATION_M.0..=PAIR_SEPARATION_M.1).contains(&d);
+                        if inside && best.is_none_or(|(b, _, _)| d < b) {
+                            best = Some((d, q, noise));
+                        }
+                    }
+                }
+            }
+            best.map(|(_, q, noise)| (q, noise))
+        };
+        let answer = |p: &Vector3<f64>| -> Option<(f64, f64)> {
+            let a = query::raw_elevation(snapshot, p.x, p.y)?;
+            let source = match a.by {
+                Answerer::Aggregate => Source::Aggregate,
+                Answerer::Window(_) => Source::Window,
+            };
+            let f = self.scales.factor(source, a.rho_m, &a.estimate);
+            Some((p.z - a.estimate.z, a.estimate.var.max(0.0).sqrt() * f))
+        };
+        query::par_map(sample, rayon::current_num_threads(), |&(p, noise_p, _)| {
+            let (q, noise_q) = partner(&p)?;
+            let (ep, sp) = answer(&p)?;
+            let (eq, sq) = answer(&q)?;
+            Some(PairResidual {
+                residual_m: [ep, eq],
+                sd_m: [sp, sq],
+                noise_var_m2: [noise_p, noise_q],
+                separation_m: (q.x - p.x).hypot(q.y - p.y),
+            })
+        })
+        .into_iter()
+        .flatten()
+        .collect()
     }
 
     /// The shape of the calibrated errors: the shares of every held residual (both sources,
@@ -162,6 +234,13 @@ impl Calibrator {
         TailShape::fit(inside[0] / total, inside[1] / total)
     }
 }
+
+/// A return in map coordinates with its noise variance along z, m².
+type Return = (Vector3<f64>, f64);
+
+/// Every this many scans (by sequence) pairs of returns test how the maps' errors correlate (the
+/// pairs need every return in a spatial hash: a few milliseconds for an OS1-64 scan).
+pub const PAIR_EVERY_SCANS: u64 = 2;
 
 /// Only residuals whose return noise variance is at most this share of the answer's calibrated
 /// variance show the shape: the rest are mostly the return's own (Gaussian) noise, which would

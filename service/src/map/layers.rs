@@ -11,13 +11,10 @@
 //! σᵢ σⱼ ρ(dᵢⱼ), with σ the calibrated height σ of each answer and ρ a Matérn-3/2 correlation of
 //! length [`LayerModel::error_length_m`] (see docs/ARCHITECTURE.md "Planner layers").
 
-use super::scales::TailShape;
+use super::scales::{ErrorCorrelation, TailShape};
 use super::window::MapSnapshot;
 use nalgebra::{Matrix3, Vector3};
 use rangegp_proto::msg::RobotModel;
-
-/// Correlation length of height errors between nearby cells, metres.
-pub const ERROR_LENGTH_M: f64 = 0.5;
 
 /// A footprint needs at least this share of its cells answered to give layers.
 pub const MIN_KNOWN_SHARE: f64 = 0.5;
@@ -39,7 +36,7 @@ impl LayerModel {
     pub fn new(robot: RobotModel, snapshot: &MapSnapshot) -> Self {
         Self {
             robot,
-            error_length_m: ERROR_LENGTH_M,
+            error_length_m: snapshot.scales.correlation.length_m,
             tails: snapshot.scales.tails,
         }
     }
@@ -79,11 +76,14 @@ impl Stencil {
             .map(|&(di, dj)| (f64::from(di) * resolution_m, f64::from(dj) * resolution_m))
             .collect();
         let n = uv.len();
+        let correlation = ErrorCorrelation {
+            length_m: model.error_length_m,
+        };
         let mut corr = vec![0.0; n * n];
         for a in 0..n {
             for b in 0..n {
                 let d = (uv[a].0 - uv[b].0).hypot(uv[a].1 - uv[b].1);
-                corr[a * n + b] = matern32(d, model.error_length_m);
+                corr[a * n + b] = correlation.at(d);
             }
         }
         Self {
@@ -108,12 +108,6 @@ impl Stencil {
     pub fn is_empty(&self) -> bool {
         self.offsets.is_empty()
     }
-}
-
-/// Matérn-3/2 correlation at distance `d` for length `l`.
-fn matern32(d: f64, l: f64) -> f64 {
-    let a = 3f64.sqrt() * d / l;
-    (1.0 + a) * (-a).exp()
 }
 
 /// Heights and their σ on a regular grid, row-major from the lower-left cell; NaN where no map
@@ -372,7 +366,11 @@ mod tests {
         for a in 0..cells {
             for b in 0..cells {
                 let d = (coords[a].0 - coords[b].0).hypot(coords[a].1 - coords[b].1);
-                k[(a, b)] = sigma * sigma * matern32(d, m.error_length_m) + if a == b { 1e-12 } else { 0.0 };
+                let rho = ErrorCorrelation {
+                    length_m: m.error_length_m,
+                }
+                .at(d);
+                k[(a, b)] = sigma * sigma * rho + if a == b { 1e-12 } else { 0.0 };
             }
         }
         let chol = k.llt(faer::Side::Lower).expect("positive definite");

@@ -3,6 +3,7 @@
 pub mod aggregate;
 pub mod calibration;
 pub mod correction;
+pub mod correlation;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;

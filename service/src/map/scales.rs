@@ -86,6 +86,35 @@ pub struct SigmaScales {
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
     pub tails: TailShape,
+    /// How the height errors of nearby answers correlate (slope σ from height σ).
+    pub correlation: ErrorCorrelation,
+}
+
+/// Correlation length of height errors before any is learnt, metres.
+pub const DEFAULT_ERROR_LENGTH_M: f64 = 0.5;
+
+/// The correlation of the maps' height errors between two answers a distance d apart: Matérn-3/2
+/// of length `length_m`, learnt by the calibrator (`map::correlation`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ErrorCorrelation {
+    /// Correlation length, metres.
+    pub length_m: f64,
+}
+
+impl Default for ErrorCorrelation {
+    fn default() -> Self {
+        Self {
+            length_m: DEFAULT_ERROR_LENGTH_M,
+        }
+    }
+}
+
+impl ErrorCorrelation {
+    /// The correlation at horizontal distance `d_m`.
+    pub fn at(&self, d_m: f64) -> f64 {
+        let a = 3f64.sqrt() * d_m / self.length_m;
+        (1.0 + a) * (-a).exp()
+    }
 }
 
 /// Degrees of freedom [`TailShape::fit`] chooses among (Gaussian besides).
