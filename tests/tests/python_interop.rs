@@ -1,22 +1,37 @@
-//! The Python examples work against a live daemon: a scan published from Python through
-//! iceoryx2 (ctypes mirror of the header and point types) and a JSON query over Zenoh.
+//! The Python examples and the Python package work against a live daemon: a scan published from
+//! Python through iceoryx2 (ctypes mirror of the header and point types), JSON queries over Zenoh,
+//! a path planned over the costmap, and the `rangegp` package (`pip install ./python`) with its
+//! pytest suite.
 //!
-//! The test makes its own virtual environment under `target/pyenv` with the pinned packages
-//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0) from PyPI. Without python3 it is skipped locally and
-//! fails under CI (`CI` set), so CI can never pass it silently.
+//! The tests make their own virtual environment under `target/pyenv` with the pinned packages
+//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0, numpy, pytest) from PyPI. Without python3 they are
+//! skipped locally and fail under CI (`CI` set), so CI can never pass them silently.
 
 use rangegp_tests::{Harness, WAIT};
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::Mutex;
 
-const PACKAGES: [&str; 2] = ["eclipse-zenoh==1.10.2", "iceoryx2==0.10.0"];
+const PACKAGES: [&str; 6] = [
+    "eclipse-zenoh==1.10.2",
+    "iceoryx2==0.10.0",
+    "numpy>=1.22",
+    "pytest>=7",
+    "setuptools>=68",
+    "wheel",
+];
+
+/// One test at a time makes the environment.
+static VENV: Mutex<()> = Mutex::new(());
 
 fn venv_python() -> anyhow::Result<Option<PathBuf>> {
+    let _one = VENV.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let venv = root.join("target/pyenv");
     let python = venv.join("bin/python");
     let marker = venv.join(".rangegp-ready");
-    if marker.exists() {
+    // The marker lists the packages installed: a changed list installs again.
+    if std::fs::read_to_string(&marker).is_ok_and(|m| m == PACKAGES.join("\n")) {
         return Ok(Some(python));
     }
     if Command::new("python3").arg("--version").output().is_err() {
@@ -139,6 +154,50 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     assert!(
         plan["max_cost"].as_i64().expect("cost") < 50,
         "flat ground is free: {plan}"
+    );
+    Ok(())
+}
+
+#[test]
+fn the_python_package_installs_and_its_pytest_suite_passes_against_a_live_daemon() -> anyhow::Result<()> {
+    let Some(python) = venv_python()? else {
+        return Ok(());
+    };
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    // The package itself; its dependencies are the environment's pinned ones.
+    let out = Command::new(&python)
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+        ])
+        .arg(root.join("python"))
+        .output()?;
+    anyhow::ensure!(
+        out.status.success(),
+        "pip install ./python failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let h = Harness::start(|_| {})?;
+    let out = Command::new(&python)
+        .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
+        .arg(root.join("python/tests"))
+        .env("RANGEGP_CONNECT", &h.endpoint)
+        .env("RANGEGP_MAP_ID", &h.config.map_id)
+        .env("RANGEGP_SERVICE", h.config.scan_service_name())
+        .output()?;
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    anyhow::ensure!(
+        out.status.success(),
+        "pytest failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("5 passed") && !stdout.contains("skipped"),
+        "every test of the suite ran: {stdout}"
     );
     Ok(())
 }

@@ -98,8 +98,12 @@ pub fn validate(
         }
         let (inc, az) = (p.inclination_rad as f64, p.azimuth_rad as f64);
         let pi = std::f64::consts::PI + 1e-6;
-        // Azimuths in [−π, π] or, as many drivers count them, in [0, 2π).
-        if !inc.is_finite() || !az.is_finite() || !(0.0..=pi).contains(&inc) || !(-pi..2.0 * pi).contains(&az)
+        // Azimuths in [−π, π] or, as many drivers count them, in [0, 2π) (an f32 just below 2π
+        // rounds to f32(2π), 1.7e-7 above it: the same slack as π's).
+        if !inc.is_finite()
+            || !az.is_finite()
+            || !(0.0..=pi).contains(&inc)
+            || !(-pi..=2.0 * pi).contains(&az)
         {
             return Err(RejectReason::InvalidAngle);
         }
@@ -315,16 +319,19 @@ pub(crate) mod tests {
 
     #[test]
     fn azimuths_counted_from_0_to_2pi_are_taken_as_from_minus_pi_to_pi() {
-        let mut pts = good_points(3);
+        let mut pts = good_points(4);
         pts[0].azimuth_rad = 1.5 * std::f32::consts::PI;
         pts[1].azimuth_rad = 0.25;
-        pts[2].azimuth_rad = 6.3;
-        let scan = validate(&good_header(2), &pts, &limits(), NOW).expect("valid");
+        // An f32 just below 2π rounds to f32(2π), a hair above 2π: taken as 0.
+        pts[2].azimuth_rad = std::f32::consts::TAU;
+        pts[3].azimuth_rad = 6.3;
+        let scan = validate(&good_header(3), &pts, &limits(), NOW).expect("valid");
         assert!((scan.rays[0].azimuth + 0.5 * std::f64::consts::PI).abs() < 1e-6);
         assert_eq!(scan.rays[1].azimuth, 0.25f32 as f64);
+        assert!(scan.rays[2].azimuth.abs() < 1e-6);
         // Past 2π is no convention: refused.
         assert_eq!(
-            validate(&good_header(3), &pts, &limits(), NOW),
+            validate(&good_header(4), &pts, &limits(), NOW),
             Err(RejectReason::InvalidAngle)
         );
     }
