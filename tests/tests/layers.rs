@@ -187,6 +187,11 @@ fn bad_layer_requests_and_old_clients_are_refused_with_a_reason() -> anyhow::Res
     let (code, message) = refused(h.client.grid_request(&req));
     assert_eq!(code, ErrorCode::InvalidArgument);
     assert!(message.contains("footprint radius"), "{message}");
+    // A grid so fine that every footprint spans 30 cells' radius: refused, not computed.
+    req.resolution_m = 0.01;
+    let (code, message) = refused(h.client.grid_request(&req));
+    assert_eq!(code, ErrorCode::InvalidArgument);
+    assert!(message.contains("footprint radius /"), "{message}");
     req.resolution_m = 0.1;
     req.robot = Some(RobotModel {
         footprint_radius_m: 0.3,

@@ -16,6 +16,11 @@ use super::window::MapSnapshot;
 use nalgebra::{Matrix3, Vector3};
 use rangegp_proto::msg::RobotModel;
 
+/// Largest footprint radius in grid cells a layer request may ask for: the per-cell work grows
+/// as the fourth power of it (a quadratic form over the footprint's cells), so a finer grid is
+/// refused rather than left to run for minutes.
+pub const MAX_FOOTPRINT_REACH: f64 = 8.0;
+
 /// A footprint needs at least this share of its cells answered to give layers.
 pub const MIN_KNOWN_SHARE: f64 = 0.5;
 
@@ -56,10 +61,13 @@ pub struct Stencil {
 }
 
 impl Stencil {
-    /// The footprint of `model` sampled at `resolution_m` (positive; panics otherwise: callers
-    /// validate requests first).
+    /// The footprint of `model` sampled at `resolution_m` (positive, and at least the radius
+    /// over [`MAX_FOOTPRINT_REACH`]; panics otherwise: callers validate requests first).
     pub fn new(model: &LayerModel, resolution_m: f64) -> Self {
-        assert!(resolution_m > 0.0, "resolution must be positive");
+        assert!(
+            resolution_m > 0.0 && model.robot.footprint_radius_m / resolution_m <= MAX_FOOTPRINT_REACH,
+            "a footprint of at most {MAX_FOOTPRINT_REACH} cells' radius"
+        );
         let r = model.robot.footprint_radius_m;
         let reach = (r / resolution_m + 1e-9).floor() as i32;
         let mut offsets = Vec::new();

@@ -3,7 +3,7 @@
 use super::DaemonState;
 use crate::map::aggregate::Aggregate;
 use crate::map::grid::GridBox;
-use crate::map::layers::LayerModel;
+use crate::map::layers::{LayerModel, MAX_FOOTPRINT_REACH};
 use crate::map::query;
 use crate::map::MapSnapshot;
 use rangegp_proto::codec::{self, Encoding};
@@ -201,6 +201,16 @@ fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
                 "grid: layers need resolution_m ≤ the footprint radius ({} m): a coarser grid \
                  samples too few points of the footprint",
                 model.robot.footprint_radius_m
+            ),
+        );
+    }
+    if derived && model.robot.footprint_radius_m / res > MAX_FOOTPRINT_REACH {
+        return fail(
+            ErrorCode::InvalidArgument,
+            format!(
+                "grid: layers need resolution_m ≥ the footprint radius / {MAX_FOOTPRINT_REACH} \
+                 ({} m): a finer grid makes every cell's footprint too large to evaluate",
+                model.robot.footprint_radius_m / MAX_FOOTPRINT_REACH
             ),
         );
     }
