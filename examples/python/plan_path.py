@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """Plan a path over a rangegp daemon's cost layer: A* on the ROS-style costmap of a grid query.
 
-Needs only `pip install eclipse-zenoh==1.10.2`. Asks `query/grid` (JSON) for the `traversal_cost`
-and `cost` layers over a box, plans 8-connected from START to GOAL through cells that are known
-and not lethal (costmap 0-99; -1 unknown and 100 lethal are walls), each step as long as it is
-times 1 + 10 x the traversal cost of the cells it joins, and prints the path as JSON on stdout.
+Needs the `rangegp` package (`pip install ./python`). Asks for the `traversal_cost` and `cost`
+layers over a box, plans 8-connected from START to GOAL through cells that are known and not
+lethal (costmap 0-99; -1 unknown and 100 lethal are walls), each step as long as it is times
+1 + 10 x the traversal cost of the cells it joins, and prints the path as JSON on stdout.
 
     python3 plan_path.py --connect tcp/127.0.0.1:7447 --bbox 0 -5 10 5 --res 0.1 \\
         --start 1 0 --goal 9 2
@@ -14,68 +14,31 @@ import heapq
 import json
 import math
 import sys
-import time
 
-import zenoh
+import numpy as np
 
-PROTOCOL_VERSION = 8
+import rangegp
+
 RISK_WEIGHT = 10.0
 
 
-def query_grid(session, map_id, bbox, res, timeout):
-    """The grid reply (a dict), or raises RuntimeError with the daemon's refusal."""
-    request = {
-        "version": PROTOCOL_VERSION,
-        "min_m": [bbox[0], bbox[1]],
-        "max_m": [bbox[2], bbox[3]],
-        "resolution_m": res,
-        "layers": ["traversal_cost", "cost"],
-    }
-    replies = session.get(
-        f"rangegp/{map_id}/query/grid",
-        payload=json.dumps(request),
-        encoding=zenoh.Encoding.APPLICATION_JSON,
-        target=zenoh.QueryTarget.ALL_COMPLETE,
-        timeout=timeout,
-    )
-    for reply in replies:
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_string())
-        error = json.loads(reply.err.payload.to_string())
-        raise RuntimeError(f"daemon refused the grid: {error['code']}: {error['message']}")
-    raise RuntimeError("no grid reply within the timeout")
-
-
-def cell_of(grid, x, y):
-    """(col, row) of the cell holding map point (x, y), or None outside the grid."""
-    res = grid["resolution_m"]
-    col = round((x - grid["origin_m"][0]) / res)
-    row = round((y - grid["origin_m"][1]) / res)
-    if 0 <= col < grid["cols"] and 0 <= row < grid["rows"]:
-        return col, row
-    return None
-
-
-def astar(grid, start, goal):
-    """The cheapest 8-connected list of cells from start to goal, or None."""
-    cols, rows = grid["cols"], grid["rows"]
-    costmap = grid["costmap"]
-    cost = next(l["values"] for l in grid["layers"] if l["layer"] == "traversal_cost")
+def astar(costmap: np.ndarray, cost: np.ndarray, start, goal):
+    """The cheapest 8-connected list of (col, row) cells from start to goal, or None; `costmap`
+    and `cost` are indexed [row, col]."""
+    rows, cols = costmap.shape
 
     def free(c, r):
-        value = costmap[r * cols + c]
-        return 0 <= value < 100
+        return 0 <= c < cols and 0 <= r < rows and 0 <= costmap[r, c] < 100
 
     def weight(c, r):
-        return 1.0 + RISK_WEIGHT * (cost[r * cols + c] or 0.0)
-
-    if not (free(*start) and free(*goal)):
-        return None
+        return 1.0 + RISK_WEIGHT * np.nan_to_num(cost[r, c])
 
     def octile(c, r):
         dx, dy = abs(c - goal[0]), abs(r - goal[1])
         return max(dx, dy) - min(dx, dy) + math.sqrt(2.0) * min(dx, dy)
 
+    if not (free(*start) and free(*goal)):
+        return None
     best = {start: 0.0}
     came = {}
     frontier = [(octile(*start), 0.0, start)]
@@ -93,7 +56,7 @@ def astar(grid, start, goal):
         for dc in (-1, 0, 1):
             for dr in (-1, 0, 1):
                 n = (c + dc, r + dr)
-                if n == cell or not (0 <= n[0] < cols and 0 <= n[1] < rows) or not free(*n):
+                if n == cell or not free(*n):
                     continue
                 step = math.sqrt(2.0) if dc and dr else 1.0
                 ng = g + step * 0.5 * (weight(c, r) + weight(*n))
@@ -115,36 +78,31 @@ def main() -> int:
     ap.add_argument("--goal", type=float, nargs=2, required=True, metavar=("X", "Y"))
     args = ap.parse_args()
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    with zenoh.open(conf) as session:
-        deadline = time.monotonic() + args.timeout
-        alive = f"rangegp/{args.map_id}/@alive"
-        while not any(r.ok for r in session.liveliness().get(alive, timeout=0.5)):
-            if time.monotonic() > deadline:
-                print(f"no rangegp daemon for map {args.map_id!r} at {args.connect}", file=sys.stderr)
-                return 2
+    with rangegp.Client(connect=args.connect, map_id=args.map_id, timeout=args.timeout) as client:
         try:
-            grid = query_grid(session, args.map_id, args.bbox, args.res, args.timeout)
-        except RuntimeError as e:
+            client.wait_for_daemon()
+            grid = client.grid(args.bbox[:2], args.bbox[2:], args.res, layers=("traversal_cost", "cost"))
+        except rangegp.RangegpError as e:
             print(e, file=sys.stderr)
-            return 1
-    start, goal = cell_of(grid, *args.start), cell_of(grid, *args.goal)
+            return 2 if e.code == "timeout" else 1
+    rows, cols = grid.costmap.shape
+
+    def cell_of(x, y):
+        c, r = np.rint((np.array([x, y]) - grid.origin) / grid.resolution).astype(int)
+        return (int(c), int(r)) if 0 <= c < cols and 0 <= r < rows else None
+
+    start, goal = cell_of(*args.start), cell_of(*args.goal)
     if start is None or goal is None:
         print("start or goal lies outside the box", file=sys.stderr)
         return 1
-    path = astar(grid, start, goal)
+    path = astar(grid.costmap, grid.layers["traversal_cost"], start, goal)
     if path is None:
         print("no path through known, non-lethal cells", file=sys.stderr)
         return 3
-    res, origin = grid["resolution_m"], grid["origin_m"]
-    points = [[origin[0] + c * res, origin[1] + r * res] for c, r in path]
+    points = [grid.centre(c, r).tolist() for c, r in path]
     length = sum(math.dist(a, b) for a, b in zip(points, points[1:]))
-    costs = [grid["costmap"][r * grid["cols"] + c] for c, r in path]
-    print(json.dumps({"path_m": points, "length_m": length, "max_cost": max(costs), "cells": len(path)}))
+    max_cost = max(int(grid.costmap[r, c]) for c, r in path)
+    print(json.dumps({"path_m": points, "length_m": length, "max_cost": max_cost, "cells": len(path)}))
     return 0
 
 

@@ -163,24 +163,14 @@ impl<'a> Heatmap<'a> {
 
     /// Draws `raster` to the PNG `file`.
     pub fn save(&self, file: &Path, raster: &Raster) -> Result<(), PlotError> {
-        static FONT: Once = Once::new();
-        FONT.call_once(|| {
-            // The dejavu crate's bytes are a valid TrueType font; a failure would only mean
-            // text falls back to nothing, which the draw below reports.
-            let _ = register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
-        });
         let (lo, hi, clipped) = self.value_range(raster);
         let cell = (MAX_SIDE / raster.nx.max(raster.ny).max(1) as u32).clamp(1, 16);
         let (plot_w, plot_h) = (raster.nx as u32 * cell, raster.ny as u32 * cell);
         let (left, bottom, top, right) = (80, 55, 45, 20);
         let (w, h) = (left + plot_w + right + BAR_PANEL, top + plot_h.max(200) + bottom);
-        let mut buf = vec![255u8; (w * h * 3) as usize];
-        self.draw(&mut buf, (w, h), raster, (lo, hi, clipped), (left, bottom, top))
-            .map_err(PlotError::Draw)?;
-        let img = image::RgbImage::from_raw(w, h, buf)
-            .ok_or_else(|| PlotError::Draw("picture buffer of the wrong size".into()))?;
-        img.save(file)?;
-        Ok(())
+        render_png(file, (w, h), |buf| {
+            self.draw(buf, (w, h), raster, (lo, hi, clipped), (left, bottom, top))
+        })
     }
 
     /// (lo, hi, whether values lie beyond) of the colour scale.
@@ -287,13 +277,25 @@ impl<'a> Heatmap<'a> {
 /// for it, one point per bin (its size written beside it), with the diagonal of perfect
 /// calibration; `title` names what was predicted.
 pub fn reliability_chart(file: &Path, title: &str, bins: &[(f64, f64, usize)]) -> Result<(), PlotError> {
+    let size = (640, 560);
+    render_png(file, size, |buf| draw_reliability(buf, size, title, bins))
+}
+
+/// Draws a picture of `size` pixels with `draw` (onto a white RGB buffer, the fonts registered)
+/// and writes it to the PNG `file`.
+fn render_png(
+    file: &Path,
+    (w, h): (u32, u32),
+    draw: impl FnOnce(&mut [u8]) -> Result<(), Box<dyn std::error::Error + Send + Sync>>,
+) -> Result<(), PlotError> {
     static FONT: Once = Once::new();
     FONT.call_once(|| {
+        // The dejavu crate's bytes are a valid TrueType font; a failure would only mean text
+        // falls back to nothing, which the draw reports.
         let _ = register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
     });
-    let (w, h) = (640u32, 560u32);
     let mut buf = vec![255u8; (w * h * 3) as usize];
-    draw_reliability(&mut buf, (w, h), title, bins).map_err(PlotError::Draw)?;
+    draw(&mut buf).map_err(PlotError::Draw)?;
     let img = image::RgbImage::from_raw(w, h, buf)
         .ok_or_else(|| PlotError::Draw("picture buffer of the wrong size".into()))?;
     img.save(file)?;

@@ -4,10 +4,12 @@
 //! refused with a reason.
 
 use rangegp_client::ClientError;
+use rangegp_lab::eval::layers::TruthLayers;
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{ErrorCode, GridReply, GridRequest, Layer, RobotModel};
 use rangegp_proto::PROTOCOL_VERSION;
-use rangegp_service::map::layers::{cell_layers, HeightGrid, LayerModel, Stencil};
+use rangegp_service::map::grid::GridBox;
+use rangegp_service::map::layers::LayerModel;
 use rangegp_service::map::scales::TailShape;
 use rangegp_service::map::scales::DEFAULT_ERROR_LENGTH_M;
 use rangegp_sim::Heightmap;
@@ -23,29 +25,16 @@ fn truth(terrain: &Heightmap, rep: &GridReply) -> Vec<Option<(f64, f64)>> {
         error_length_m: DEFAULT_ERROR_LENGTH_M,
         tails: TailShape::default(),
     };
-    let stencil = Stencil::new(&model, rep.resolution_m);
-    let m = stencil.reach() as usize;
-    let (cols, rows) = (rep.cols as usize + 2 * m, rep.rows as usize + 2 * m);
-    let z: Vec<f64> = (0..cols * rows)
-        .map(|k| {
-            let (c, r) = ((k % cols) as f64 - m as f64, (k / cols) as f64 - m as f64);
-            let x = rep.origin_m[0] + c * rep.resolution_m;
-            let y = rep.origin_m[1] + r * rep.resolution_m;
-            terrain.height(x, y).unwrap_or(f64::NAN)
-        })
-        .collect();
-    let sd = vec![0.0; z.len()];
-    let grid = HeightGrid {
-        cols,
-        rows,
-        z: &z,
-        sd: &sd,
+    let grid_box = GridBox {
+        origin_m: rep.origin_m,
+        resolution_m: rep.resolution_m,
+        cols: rep.cols as usize,
+        rows: rep.rows as usize,
     };
-    (0..rep.cols as usize * rep.rows as usize)
-        .map(|k| {
-            let (c, r) = (k % rep.cols as usize + m, k / rep.cols as usize + m);
-            cell_layers(&grid, &stencil, &model, c, r).map(|l| (l.slope, l.step))
-        })
+    TruthLayers::new(terrain, &grid_box, &model)
+        .cells
+        .iter()
+        .map(|t| t.map(|t| (t.slope, t.step)))
         .collect()
 }
 

@@ -1,10 +1,10 @@
-//! The Python examples and the Python package work against a live daemon: a scan published from
-//! Python through iceoryx2 (ctypes mirror of the header and point types), JSON queries over Zenoh,
-//! a path planned over the costmap, and the `rangegp` package (`pip install ./python`) with its
-//! pytest suite.
+//! The Python package and examples work against a live daemon: a scan published from Python
+//! through iceoryx2 (`rangegp.ScanPublisher`), a bare JSON query over Zenoh, a path planned over
+//! the costmap, and the `rangegp` package's pytest suite.
 //!
 //! The tests make their own virtual environment under `target/pyenv` with the pinned packages
-//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0, numpy, pytest) from PyPI. Without python3 they are
+//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0, numpy, pytest) from PyPI, then `pip install` the
+//! repository's `python/` package into it. Without python3 they are
 //! skipped locally and fail under CI (`CI` set), so CI can never pass them silently.
 
 use rangegp_tests::{Harness, WAIT};
@@ -21,11 +21,71 @@ const PACKAGES: [&str; 6] = [
     "wheel",
 ];
 
-/// One test at a time makes the environment.
-static VENV: Mutex<()> = Mutex::new(());
+/// The environment, made once per run of this test binary (`None`: no python3 outside CI).
+static VENV: Mutex<Option<Option<PathBuf>>> = Mutex::new(None);
 
+/// The venv's python with the pinned packages and this repository's `rangegp` package installed
+/// (the package from a copy under `target/`: a build writes `build/` and `*.egg-info` beside its
+/// sources, and the working tree stays clean).
 fn venv_python() -> anyhow::Result<Option<PathBuf>> {
-    let _one = VENV.lock().unwrap_or_else(|e| e.into_inner());
+    let mut made = VENV.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(python) = made.as_ref() {
+        return Ok(python.clone());
+    }
+    let python = make_venv()?;
+    if let Some(python) = &python {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let copy = root.join("target/pyenv/rangegp-src");
+        if copy.exists() {
+            std::fs::remove_dir_all(&copy)?;
+        }
+        copy_tree(&root.join("python"), &copy)?;
+        let out = Command::new(python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--no-deps",
+                "--no-build-isolation",
+            ])
+            .arg(&copy)
+            .output()?;
+        anyhow::ensure!(
+            out.status.success(),
+            "pip install ./python failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    *made = Some(python.clone());
+    Ok(python)
+}
+
+/// Copies the directory `from` to `to`, leaving out what a build or a test run left there.
+fn copy_tree(from: &Path, to: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(to)?;
+    for entry in std::fs::read_dir(from)? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let skip = ["build", "__pycache__", ".pytest_cache"]
+            .iter()
+            .any(|n| name == *n)
+            || name.to_string_lossy().ends_with(".egg-info");
+        if skip {
+            continue;
+        }
+        if entry.file_type()?.is_dir() {
+            copy_tree(&entry.path(), &to.join(&name))?;
+        } else {
+            std::fs::copy(entry.path(), to.join(&name))?;
+        }
+    }
+    Ok(())
+}
+
+/// The venv under `target/pyenv` with [`PACKAGES`] (kept between runs while the list is
+/// unchanged), or `None` without python3 outside CI.
+fn make_venv() -> anyhow::Result<Option<PathBuf>> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let venv = root.join("target/pyenv");
     let python = venv.join("bin/python");
@@ -159,28 +219,11 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
 }
 
 #[test]
-fn the_python_package_installs_and_its_pytest_suite_passes_against_a_live_daemon() -> anyhow::Result<()> {
+fn the_python_packages_pytest_suite_passes_against_a_live_daemon() -> anyhow::Result<()> {
     let Some(python) = venv_python()? else {
         return Ok(());
     };
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    // The package itself; its dependencies are the environment's pinned ones.
-    let out = Command::new(&python)
-        .args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--no-deps",
-            "--no-build-isolation",
-        ])
-        .arg(root.join("python"))
-        .output()?;
-    anyhow::ensure!(
-        out.status.success(),
-        "pip install ./python failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let h = Harness::start(|_| {})?;
     let out = Command::new(&python)
         .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])

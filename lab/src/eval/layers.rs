@@ -412,20 +412,27 @@ fn margin_box(b: &GridBox, margin: usize) -> GridBox {
 
 /// The true layers of one cell.
 #[derive(Debug, Clone, Copy)]
-struct Truth {
-    slope: f64,
-    step: f64,
-    roughness: f64,
+pub struct Truth {
+    /// Slope angle, radians.
+    pub slope: f64,
+    /// Step across the footprint, metres.
+    pub step: f64,
+    /// Roughness, metres.
+    pub roughness: f64,
 }
 
-/// The layers of the terrain's true heights on a grid box's cells.
-struct TruthLayers {
-    cells: Vec<Option<Truth>>,
-    margin: usize,
+/// The layers of the terrain's true heights on a grid box's cells: what the daemon's layers are
+/// scored against (the same cells, the same footprint, σ 0).
+pub struct TruthLayers {
+    /// One per cell of the box, row-major from the lower-left (`None` off the terrain).
+    pub cells: Vec<Option<Truth>>,
+    /// Cells the footprint reaches beyond the box.
+    pub margin: usize,
 }
 
 impl TruthLayers {
-    fn new(terrain: &Heightmap, b: &GridBox, model: &LayerModel) -> Self {
+    /// The true layers of `terrain` on `b`'s cells for `model`'s robot.
+    pub fn new(terrain: &Heightmap, b: &GridBox, model: &LayerModel) -> Self {
         let stencil = Stencil::new(model, b.resolution_m);
         let margin = stencil.reach() as usize;
         let outer = margin_box(b, margin);
@@ -550,17 +557,7 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
         plan.pairs += 1;
         match astar(cols, rows, a, b, &blocked_map, &map_cost) {
             None => plan.no_path += 1,
-            Some((path, _)) => {
-                let length: f64 = path
-                    .windows(2)
-                    .map(|w| {
-                        if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols {
-                            2f64.sqrt()
-                        } else {
-                            1.0
-                        }
-                    })
-                    .sum();
+            Some((path, length)) => {
                 plan.path_cells += path.len();
                 plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
                 plan.ratios.push(length / oracle_len.max(1e-9));

@@ -79,16 +79,6 @@ impl CorrelationLearner {
         }
     }
 
-    /// Pairs held.
-    pub fn len(&self) -> usize {
-        self.pairs.len()
-    }
-
-    /// Whether no pair is held.
-    pub fn is_empty(&self) -> bool {
-        self.pairs.is_empty()
-    }
-
     /// The correlation the pairs give: the default until [`MIN_PAIRS`] are held (or while
     /// the noise leaves no error variance to correlate), then the Matérn-3/2 length whose mean
     /// correlation at the pairs' separations equals the estimated ρ (clamped to

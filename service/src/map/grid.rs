@@ -1,7 +1,7 @@
 //! Grids and slopes over a [`MapSnapshot`]: cell centres answered like elevation queries, and
 //! the planner layers ([`super::layers`]) over the robot's footprint around each.
 
-use super::layers::{cell_layers, CellLayers, HeightGrid, LayerModel, Stencil};
+use super::layers::{cell_layers, footprint_reach, CellLayers, HeightGrid, LayerModel, Stencil};
 use super::query;
 use super::window::MapSnapshot;
 use rangegp_proto::msg::{ElevationItem, GridLayer, GridReply, Layer, Refusal, SlopeItem, SlopeReply};
@@ -22,13 +22,6 @@ pub struct GridBox {
     pub cols: usize,
     /// Cells along y.
     pub rows: usize,
-}
-
-impl GridBox {
-    /// Cells the box evaluates, including `margin` cells beyond each side.
-    pub fn cells_with_margin(&self, margin: usize) -> usize {
-        (self.cols + 2 * margin) * (self.rows + 2 * margin)
-    }
 }
 
 /// The reply to a grid over `grid_box` (validated by the caller: positive resolution, at most
@@ -134,8 +127,8 @@ fn value(l: &CellLayers, layer: Layer) -> f64 {
 
 /// Elevation answers one point slope query takes (its footprint grid).
 pub fn samples_per_point(model: &LayerModel) -> usize {
-    let res = model.robot.footprint_radius_m / SLOPE_SAMPLES_PER_RADIUS;
-    let side = 2 * Stencil::new(model, res).reach() as usize + 1;
+    let radius = model.robot.footprint_radius_m;
+    let side = 2 * footprint_reach(radius, radius / SLOPE_SAMPLES_PER_RADIUS) + 1;
     side * side
 }
 
@@ -193,12 +186,10 @@ pub fn slopes(snapshot: &MapSnapshot, points: &[[f64; 2]], model: &LayerModel, t
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::scales::TailShape;
-    use crate::map::test_support::{family_terrain, params, scan_of};
+    use crate::map::test_support::{family_terrain, layer_model, params, scan_of};
     use crate::map::{LocalRangeMap, Window};
     use nalgebra::Isometry3;
     use rangegp_proto::msg::Provenance;
-    use rangegp_proto::msg::RobotModel;
     use std::sync::Arc;
 
     /// Cells some map answered.
@@ -208,19 +199,6 @@ mod tests {
             .iter()
             .filter(|p| **p != Provenance::None)
             .count()
-    }
-
-    fn model() -> LayerModel {
-        LayerModel {
-            robot: RobotModel {
-                footprint_radius_m: 0.3,
-                max_slope_deg: 20.0,
-                max_step_m: 0.2,
-                lethal_risk: 0.5,
-            },
-            error_length_m: 0.5,
-            tails: TailShape::default(),
-        }
     }
 
     #[test]
@@ -233,7 +211,7 @@ mod tests {
         let mut window = Window::new(4);
         window.push(Arc::new(map));
         let snap = window.snapshot();
-        let m = model();
+        let m = layer_model();
         let res = m.robot.footprint_radius_m / SLOPE_SAMPLES_PER_RADIUS;
         let b = GridBox {
             origin_m: [2.0, -1.0],

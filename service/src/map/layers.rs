@@ -21,6 +21,12 @@ use rangegp_proto::msg::RobotModel;
 /// refused rather than left to run for minutes.
 pub const MAX_FOOTPRINT_REACH: f64 = 8.0;
 
+/// Cells of a footprint of `radius_m` beyond its centre along each axis at `resolution_m` (the
+/// margin a grid needs around its box).
+pub fn footprint_reach(radius_m: f64, resolution_m: f64) -> usize {
+    (radius_m / resolution_m + 1e-9).floor() as usize
+}
+
 /// A footprint needs at least this share of its cells answered to give layers.
 pub const MIN_KNOWN_SHARE: f64 = 0.5;
 
@@ -69,7 +75,7 @@ impl Stencil {
             "a footprint of at most {MAX_FOOTPRINT_REACH} cells' radius"
         );
         let r = model.robot.footprint_radius_m;
-        let reach = (r / resolution_m + 1e-9).floor() as i32;
+        let reach = footprint_reach(r, resolution_m) as i32;
         let mut offsets = Vec::new();
         for dj in -reach..=reach {
             for di in -reach..=reach {
@@ -313,19 +319,7 @@ pub fn cell_layers(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn model() -> LayerModel {
-        LayerModel {
-            robot: RobotModel {
-                footprint_radius_m: 0.3,
-                max_slope_deg: 20.0,
-                max_step_m: 0.2,
-                lethal_risk: 0.5,
-            },
-            error_length_m: 0.5,
-            tails: TailShape::default(),
-        }
-    }
+    use crate::map::test_support::layer_model;
 
     fn plane(cols: usize, rows: usize, res: f64, gx: f64, gy: f64) -> Vec<f64> {
         (0..rows)
@@ -344,7 +338,7 @@ mod tests {
             z: &z,
             sd: &sd,
         };
-        let m = model();
+        let m = layer_model();
         let s = Stencil::new(&m, res);
         assert_eq!(s.reach(), 3);
         let l = cell_layers(&grid, &s, &m, 5, 5).expect("inside the grid");
@@ -363,7 +357,7 @@ mod tests {
         // slope gradient must match the σ the delta method gives.
         use rand::{Rng, SeedableRng};
         let (res, n) = (0.1, 9usize);
-        let m = model();
+        let m = layer_model();
         let s = Stencil::new(&m, res);
         let cells = n * n;
         let coords: Vec<(f64, f64)> = (0..cells)
@@ -422,7 +416,7 @@ mod tests {
         let res = 0.1;
         let flat = plane(11, 11, res, 0.0, 0.0);
         let sd = vec![0.01; flat.len()];
-        let m = model();
+        let m = layer_model();
         let s = Stencil::new(&m, res);
         let mut z = flat.clone();
         for j in 0..11 {
@@ -457,7 +451,7 @@ mod tests {
         let res = 0.1;
         let mut z = plane(11, 11, res, 0.0, 0.0);
         let sd = vec![0.01; z.len()];
-        let m = model();
+        let m = layer_model();
         let s = Stencil::new(&m, res);
         let flat = HeightGrid {
             cols: 11,

@@ -25,6 +25,21 @@ pub(crate) fn params() -> MapParams {
     }
 }
 
+/// A rover's planner layers (the `[layers]` defaults) under a Gaussian error of the default
+/// correlation length.
+pub(crate) fn layer_model() -> super::layers::LayerModel {
+    super::layers::LayerModel {
+        robot: rangegp_proto::msg::RobotModel {
+            footprint_radius_m: 0.3,
+            max_slope_deg: 20.0,
+            max_step_m: 0.2,
+            lethal_risk: 0.5,
+        },
+        error_length_m: super::scales::DEFAULT_ERROR_LENGTH_M,
+        tails: super::scales::TailShape::default(),
+    }
+}
+
 /// The terrain of the sim family called `name`, built from `seed` over `size_m` × `size_m`.
 pub(crate) fn family_terrain(name: &str, seed: u64, size_m: f64) -> Heightmap {
     rangegp_sim::family::family()

@@ -3,7 +3,7 @@
 use super::DaemonState;
 use crate::map::aggregate::Aggregate;
 use crate::map::grid::GridBox;
-use crate::map::layers::{LayerModel, MAX_FOOTPRINT_REACH};
+use crate::map::layers::{footprint_reach, LayerModel, MAX_FOOTPRINT_REACH};
 use crate::map::query;
 use crate::map::MapSnapshot;
 use rangegp_proto::codec::{self, Encoding};
@@ -215,7 +215,7 @@ fn grid(req: &GridRequest, state: &DaemonState) -> Result<GridReply, Failure> {
         );
     }
     let margin = if derived {
-        (model.robot.footprint_radius_m / res).floor() as u64
+        footprint_reach(model.robot.footprint_radius_m, res) as u64
     } else {
         0
     };
