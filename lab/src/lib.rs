@@ -17,4 +17,5 @@ pub mod demo;
 pub mod eval;
 pub mod load;
 pub mod plot;
+pub mod replay;
 pub mod scangen;

@@ -14,21 +14,9 @@ pub fn to_message(
     rays: &[SimRay],
     stamp_ns: u64,
 ) -> (ScanHeader, Vec<ScanPoint>) {
-    let q = pose.rotation.quaternion();
-    let t = pose.translation.vector;
     let header = ScanHeader {
         point_count: rays.len() as u32,
-        stamp_ns,
-        px_m: t.x,
-        py_m: t.y,
-        pz_m: t.z,
-        qx: q.i,
-        qy: q.j,
-        qz: q.k,
-        qw: q.w,
-        max_range_m: preset.max_range_m,
-        range_noise_per_m: preset.range_noise_per_m,
-        ..ScanHeader::default()
+        ..pose_header(pose, stamp_ns, preset.max_range_m, preset.range_noise_per_m)
     };
     let points = rays
         .iter()
@@ -49,6 +37,31 @@ pub fn to_message(
         })
         .collect();
     (header, points)
+}
+
+/// A scan header at `stamp_ns` for a sensor at `pose` with its range and noise model (no
+/// motion; sequence, publisher id and point count left for the publisher).
+pub fn pose_header(
+    pose: &Isometry3<f64>,
+    stamp_ns: u64,
+    max_range_m: f64,
+    range_noise_per_m: f64,
+) -> ScanHeader {
+    let q = pose.rotation.quaternion();
+    let t = pose.translation.vector;
+    ScanHeader {
+        stamp_ns,
+        px_m: t.x,
+        py_m: t.y,
+        pz_m: t.z,
+        qx: q.i,
+        qy: q.j,
+        qz: q.k,
+        qw: q.w,
+        max_range_m,
+        range_noise_per_m,
+        ..ScanHeader::default()
+    }
 }
 
 /// `header` with the sweep's twist (the daemon deskews each point by its `time_offset_ns`).

@@ -2,8 +2,12 @@
 //! through iceoryx2 (`rangegp.ScanPublisher`), a bare JSON query over Zenoh, a path planned over
 //! the costmap, and the `rangegp` package's pytest suite.
 //!
+//! A recording the lab writes for `rangegp replay` is read by an independent ROS 2 MCAP
+//! implementation (mcap-ros2-support), which writes it again with its own CDR encoder; the
+//! replay of that file gives the same map.
+//!
 //! The tests make their own virtual environment under `target/pyenv` with the pinned packages
-//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0, numpy, pytest) from PyPI, then `pip install` the
+//! (eclipse-zenoh 1.10.2, iceoryx2 0.10.0, mcap-ros2-support 0.5.5, numpy, pytest) from PyPI, then `pip install` the
 //! repository's `python/` package into it. Without python3 they are
 //! skipped locally and fail under CI (`CI` set), so CI can never pass them silently.
 
@@ -12,9 +16,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Mutex;
 
-const PACKAGES: [&str; 6] = [
+const PACKAGES: [&str; 7] = [
     "eclipse-zenoh==1.10.2",
     "iceoryx2==0.10.0",
+    "mcap-ros2-support==0.5.5",
     "numpy>=1.22",
     "pytest>=7",
     "setuptools>=68",
@@ -242,5 +247,115 @@ fn the_python_packages_pytest_suite_passes_against_a_live_daemon() -> anyhow::Re
         stdout.contains("5 passed") && !stdout.contains("skipped"),
         "every test of the suite ran: {stdout}"
     );
+    Ok(())
+}
+
+#[test]
+fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its() -> anyhow::Result<()> {
+    use rangegp_lab::replay::{self, record, Pace, PoseSource, ReplayOptions};
+    use rangegp_lab::scangen::{now_ns, ScanGenerator};
+    use rangegp_sim::ScannerPreset;
+    let Some(python) = venv_python()? else {
+        return Ok(());
+    };
+    let preset = ScannerPreset::by_name("vlp16").expect("a preset");
+    let mut w = ScanGenerator::new(23, 100.0, preset, 3, 1.0);
+    let t0 = now_ns() - 5_000_000_000;
+    let scans: Vec<_> = (0..3).map(|i| w.scan(i, t0 + i as u64 * 500_000_000)).collect();
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/pyenv");
+    let ours = dir.join(format!("{}.mcap", rangegp_tests::unique_id("ours")));
+    let theirs = dir.join(format!("{}.mcap", rangegp_tests::unique_id("theirs")));
+    let mount = replay::mount(&[0.1, 0.0, 0.5, 0.0, 0.0, -30.0])?;
+    let opts = record::RecordOptions {
+        sensor_to_base: mount,
+        zstd: true,
+        ..Default::default()
+    };
+    record::write(std::fs::File::create(&ours)?, &scans, &opts)?;
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/reencode_mcap.py");
+    let out = Command::new(&python)
+        .arg(script)
+        .arg(&ours)
+        .arg(&theirs)
+        .output()?;
+    anyhow::ensure!(
+        out.status.success(),
+        "reencode_mcap.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let read: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+    assert_eq!(
+        read["topics"],
+        serde_json::json!({"/points": 3, "/odom": 3, "/tf": 3})
+    );
+    let first = record::cloud_of(&scans[0], "lidar");
+    let cloud = &read["cloud"];
+    assert_eq!(cloud["height"], first.height);
+    assert_eq!(cloud["width"], first.width);
+    assert_eq!(cloud["bytes"], first.data.len());
+    assert_eq!(cloud["frame_id"], "lidar");
+    assert_eq!(cloud["stamp_ns"], t0);
+    let fields: Vec<(String, u32, u8)> = first
+        .fields
+        .iter()
+        .map(|f| (f.name.clone(), f.offset, f.datatype))
+        .collect();
+    assert_eq!(cloud["fields"], serde_json::to_value(&fields)?);
+    let base = scans[0].pose * mount.inverse();
+    let odom = &read["odom_first"];
+    for (k, v) in base.translation.vector.iter().enumerate() {
+        assert!((odom[k].as_f64().unwrap_or(f64::NAN) - v).abs() < 1e-12, "{odom}");
+    }
+    assert_eq!(odom[3], "base_link");
+    assert_eq!(read["tf_first"][0], "odom");
+    assert_eq!(read["tf_first"][1], "base_link");
+
+    // Both files, replayed into two daemons, give the same answers.
+    let mut answers = Vec::new();
+    for file in [&ours, &theirs] {
+        let h = Harness::start(|_| {})?;
+        let o = ReplayOptions {
+            file: file.clone(),
+            list: false,
+            cloud_topic: None,
+            odom_topic: None,
+            pose_source: PoseSource::Odom,
+            tf_topic: "/tf".into(),
+            base_frame: "base_link".into(),
+            sensor_to_base: vec![0.1, 0.0, 0.5, 0.0, 0.0, -30.0],
+            max_range_m: scans[0].header.max_range_m,
+            range_noise_per_m: scans[0].header.range_noise_per_m,
+            service: h.config.scan_service_name(),
+            publisher_id: 5,
+            max_points: 65_536,
+            pace: Pace::Accepted,
+            speed: 1.0,
+            accept_timeout_s: WAIT.as_secs_f64(),
+        };
+        let summary = replay::run(&o, Some(&h.client), |_| {})?;
+        assert_eq!((summary.published, summary.skipped.len()), (3, 0), "{summary:?}");
+        h.wait_status("3 scans fused", |s| {
+            s.scans_accepted == 3 && s.aggregate.inserts == 3
+        })?;
+        let s = scans[2].pose.translation.vector;
+        let points: Vec<[f64; 2]> = (0..60)
+            .map(|k| {
+                let a = k as f64 * 0.105;
+                let r = 3.0 + (k % 7) as f64;
+                [s.x + r * a.cos(), s.y + r * a.sin()]
+            })
+            .collect();
+        answers.push(h.client.elevation(&points)?);
+    }
+    let answered = answers[0].iter().filter(|a| a.z_m.is_some()).count();
+    assert!(answered >= 50, "{answered} of 60 answered");
+    for (a, b) in answers[0].iter().zip(&answers[1]) {
+        assert_eq!(a.z_m.is_some(), b.z_m.is_some());
+        if let (Some(x), Some(y)) = (a.z_m, b.z_m) {
+            assert!((x - y).abs() < 1e-9, "{x} against {y}");
+        }
+    }
+    std::fs::remove_file(&ours)?;
+    std::fs::remove_file(&theirs)?;
     Ok(())
 }

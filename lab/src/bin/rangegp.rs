@@ -7,6 +7,7 @@ use rangegp_client::{Client, ScanPublisher};
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::plot::{Heatmap, Limits, Raster};
+use rangegp_lab::replay::{self, ReplayOptions};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
 use rangegp_proto::msg::{
     Camera, GridReply, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest,
@@ -179,6 +180,38 @@ enum Command {
         /// Output directory.
         #[arg(long, default_value = "load-out")]
         out: std::path::PathBuf,
+    },
+    /// Feed a rosbag2 MCAP recording (PointCloud2 with Odometry or /tf) to the daemon as scans;
+    /// `--list` shows its topics.
+    Replay {
+        #[command(flatten)]
+        options: ReplayOptions,
+        #[command(flatten)]
+        connection: Connection,
+    },
+    /// Write simulated scans along a path as a rosbag2 MCAP recording (/points, /odom, /tf), to
+    /// try `replay` without a robot.
+    RecordSim {
+        /// Output file.
+        out: std::path::PathBuf,
+        /// Sensor preset: seed000, vlp16 or os1-64.
+        #[arg(long, default_value = "vlp16")]
+        preset: String,
+        /// Scans to record.
+        #[arg(long, default_value_t = 30)]
+        count: usize,
+        /// Scans per second (the recorded stamps' pace).
+        #[arg(long, default_value_t = 2.0)]
+        rate_hz: f64,
+        /// World seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Metres between scans.
+        #[arg(long, default_value_t = 1.0)]
+        step_m: f64,
+        /// Compress chunks with zstd.
+        #[arg(long)]
+        zstd: bool,
     },
     /// Publish simulated scans along a path at a rate (the scan generator).
     Scangen {
@@ -641,6 +674,53 @@ fn main() -> Result<()> {
             };
             let summary = load::run(&opts, |line| eprintln!("{line}"))?;
             load::print(&summary, &opts.out);
+        }
+        Command::Replay { options, connection } => {
+            if options.list {
+                println!(
+                    "{:<32} {:<32} {:<8} {:>9} {:>9}",
+                    "topic", "type", "encoding", "messages", "seconds"
+                );
+                for t in replay::list(&options.file)? {
+                    let span = t.span_ns.1.saturating_sub(t.span_ns.0) as f64 * 1e-9;
+                    println!(
+                        "{:<32} {:<32} {:<8} {:>9} {:>9.1}",
+                        t.topic, t.schema, t.encoding, t.messages, span
+                    );
+                }
+            } else {
+                let client = match options.pace {
+                    replay::Pace::Accepted => Some(connection.open()?),
+                    replay::Pace::Recorded => None,
+                };
+                let summary = replay::run(&options, client.as_ref(), |line| eprintln!("{line}"))?;
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            }
+        }
+        Command::RecordSim {
+            out,
+            preset,
+            count,
+            rate_hz,
+            seed,
+            step_m,
+            zstd,
+        } => {
+            let preset = preset_named(&preset)?;
+            anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
+            let mut world = ScanGenerator::new(seed, 100.0, preset, count, step_m);
+            let t0 = now_ns();
+            let period_ns = (1e9 / rate_hz) as u64;
+            let scans: Vec<_> = (0..count)
+                .map(|i| world.scan(i, t0 + i as u64 * period_ns))
+                .collect();
+            let file = std::fs::File::create(&out)?;
+            let opts = replay::record::RecordOptions {
+                zstd,
+                ..Default::default()
+            };
+            replay::record::write(file, &scans, &opts)?;
+            eprintln!("{count} scans written to {}", out.display());
         }
         Command::Scangen {
             service,
