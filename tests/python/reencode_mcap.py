@@ -45,7 +45,7 @@ def main(src: str, dst: str) -> None:
             if schema.name == "nav_msgs/msg/Odometry" and summary["odom_first"] is None:
                 p = decoded.pose.pose.position
                 summary["odom_first"] = [p.x, p.y, p.z, decoded.child_frame_id]
-            if schema.name == "tf2_msgs/msg/TFMessage" and summary["tf_first"] is None:
+            if channel.topic == "/tf" and summary["tf_first"] is None:
                 t = decoded.transforms[0]
                 summary["tf_first"] = [t.header.frame_id, t.child_frame_id, t.transform.rotation.w]
         writer.finish()

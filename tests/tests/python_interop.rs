@@ -286,7 +286,7 @@ fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its(
     let read: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     assert_eq!(
         read["topics"],
-        serde_json::json!({"/points": 3, "/odom": 3, "/tf": 3})
+        serde_json::json!({"/points": 3, "/odom": 3, "/tf": 3, "/tf_static": 1})
     );
     let first = record::cloud_of(&scans[0], "lidar");
     let cloud = &read["cloud"];
@@ -322,7 +322,7 @@ fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its(
             pose_source: PoseSource::Odom,
             tf_topic: "/tf".into(),
             base_frame: "base_link".into(),
-            sensor_to_base: vec![0.1, 0.0, 0.5, 0.0, 0.0, -30.0],
+            sensor_to_base: None,
             max_range_m: scans[0].header.max_range_m,
             range_noise_per_m: scans[0].header.range_noise_per_m,
             service: h.config.scan_service_name(),
@@ -334,6 +334,10 @@ fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its(
         };
         let summary = replay::run(&o, Some(&h.client), |_| {})?;
         assert_eq!((summary.published, summary.skipped.len()), (3, 0), "{summary:?}");
+        assert_eq!(
+            summary.mount_from, "/tf_static",
+            "the mount read back from /tf_static"
+        );
         h.wait_status("3 scans fused", |s| {
             s.scans_accepted == 3 && s.aggregate.inserts == 3
         })?;

@@ -20,27 +20,20 @@ fn score(h: &Harness, points: &[[f64; 2]], truth: impl Fn(&[f64; 2]) -> f64) -> 
     Ok((rms(&errors), errors.len()))
 }
 
-/// Clap's parse of `rangegp replay FILE` with the daemon's service, then the test's settings.
+/// Clap's parse of `rangegp replay FILE` with the daemon's service, then the test's settings;
+/// the mount from the command line, or else from the recording's /tf_static.
 fn options(file: &std::path::Path, h: &Harness, scan: &GeneratedScan, source: PoseSource) -> ReplayOptions {
     #[derive(clap::Parser)]
     struct Cli {
         #[command(flatten)]
         options: ReplayOptions,
     }
-    let mut o = Cli::parse_from([
-        "replay",
-        &file.display().to_string(),
-        "--sensor-to-base",
-        "0.3",
-        "-0.1",
-        "0.6",
-        "0",
-        "2",
-        "15",
-        "--pace",
-        "accepted",
-    ])
-    .options;
+    let file = file.display().to_string();
+    let mut args = vec!["replay", &file, "--pace", "accepted"];
+    if source == PoseSource::Odom {
+        args.extend(["--sensor-to-base", "0.3", "-0.1", "0.6", "0", "2", "15"]);
+    }
+    let mut o = Cli::parse_from(args).options;
     o.service = h.config.scan_service_name();
     o.max_range_m = scan.header.max_range_m;
     o.range_noise_per_m = scan.header.range_noise_per_m;
@@ -80,6 +73,7 @@ fn a_recorded_mcap_replayed_maps_as_well_as_the_scans_sent_directly() -> anyhow:
             ("/odom", "nav_msgs/msg/Odometry", SCANS as u64),
             ("/points", "sensor_msgs/msg/PointCloud2", SCANS as u64),
             ("/tf", "tf2_msgs/msg/TFMessage", SCANS as u64),
+            ("/tf_static", "tf2_msgs/msg/TFMessage", 1),
         ]
     );
 
@@ -108,6 +102,12 @@ fn a_recorded_mcap_replayed_maps_as_well_as_the_scans_sent_directly() -> anyhow:
             (SCANS as u64, SCANS as u64, 0),
             "{summary:?}"
         );
+        let from = if source == PoseSource::Odom {
+            "--sensor-to-base"
+        } else {
+            "/tf_static"
+        };
+        assert_eq!(summary.mount_from, from);
         let status = h.wait_status("every replayed scan accepted and fused", |s| {
             s.scans_accepted == SCANS as u64 && fused(s)
         })?;
@@ -132,6 +132,12 @@ fn a_recorded_mcap_replayed_maps_as_well_as_the_scans_sent_directly() -> anyhow:
     opts.base_frame = "chassis".into();
     let err = replay::run(&opts, Some(&h.client), |_| {}).expect_err("no chassis frame in /tf");
     assert!(matches!(err, replay::ReplayError::NoPoses(_)), "{err}");
+    // Odometry poses, but no /tf_static chain from a "mast" base to the lidar: the mount is
+    // asked for, not taken as the identity.
+    opts.base_frame = "mast".into();
+    opts.pose_source = PoseSource::Odom;
+    let err = replay::run(&opts, Some(&h.client), |_| {}).expect_err("no mount for mast");
+    assert!(err.to_string().contains("--sensor-to-base"), "{err}");
     opts.cloud_topic = Some("/velodyne_points".into());
     let err = replay::run(&opts, Some(&h.client), |_| {}).expect_err("no such topic");
     assert!(err.to_string().contains("/velodyne_points"), "{err}");

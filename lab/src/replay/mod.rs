@@ -67,9 +67,10 @@ pub struct ReplayOptions {
     /// Child frame of the base pose in /tf (REP-105).
     #[arg(long, default_value = "base_link")]
     pub base_frame: String,
-    /// The sensor's pose on the base: X Y Z (metres) ROLL PITCH YAW (degrees).
-    #[arg(long, num_args = 6, allow_negative_numbers = true, default_values_t = [0.0; 6])]
-    pub sensor_to_base: Vec<f64>,
+    /// The sensor's pose on the base: X Y Z (metres) ROLL PITCH YAW (degrees); default: from
+    /// `/tf_static` (the chain from `--base-frame` to the cloud's frame).
+    #[arg(long, num_args = 6, allow_negative_numbers = true)]
+    pub sensor_to_base: Option<Vec<f64>>,
     /// The sensor's maximum range, metres (returns at or beyond it are no-returns).
     #[arg(long, default_value_t = 100.0)]
     pub max_range_m: f64,
@@ -166,6 +167,9 @@ pub struct ReplaySummary {
     pub bad_poses: u64,
     /// Wall time of the replay, seconds.
     pub seconds: f64,
+    /// Where the sensor's pose on the base came from: `--sensor-to-base`, `/tf_static`, or
+    /// `identity` (the cloud's frame is the base).
+    pub mount_from: String,
 }
 
 impl ReplaySummary {
@@ -285,12 +289,21 @@ pub fn mount(v: &[f64]) -> Result<Isometry3<f64>, ReplayError> {
     ))
 }
 
-/// Reads every pose sample of the chosen source.
+/// What the first pass over a file gathers: the base's poses, the static transforms and the
+/// first cloud's frame.
+struct Frames {
+    timeline: Timeline,
+    statics: Vec<ros::TransformStamped>,
+    cloud_frame: Option<String>,
+}
+
+/// Reads every pose sample of the chosen source, the static transforms and the cloud frame.
 fn read_poses(
     opts: &ReplayOptions,
     topics: &[TopicInfo],
+    cloud_topic: &str,
     summary: &mut ReplaySummary,
-) -> Result<Timeline, ReplayError> {
+) -> Result<Frames, ReplayError> {
     let odom = pick(topics, ros::ODOMETRY, opts.odom_topic.as_deref(), "--odom-topic")?;
     let use_odom = match opts.pose_source {
         PoseSource::Odom => Some(odom.ok_or(ReplayError::NoPoses("nav_msgs/Odometry"))?),
@@ -298,7 +311,19 @@ fn read_poses(
         PoseSource::Auto => odom,
     };
     let mut timeline = Timeline::default();
+    let mut statics = Vec::new();
+    let mut cloud_frame = None;
     for_each_message(&opts.file, |c, _, data| {
+        if c.topic == STATIC_TF_TOPIC && c.schema == ros::TF_MESSAGE {
+            if let Ok(m) = ros::decode::<ros::TfMessage>(data) {
+                statics.extend(m.transforms);
+            }
+        }
+        if cloud_frame.is_none() && c.topic == cloud_topic {
+            cloud_frame = ros::decode::<ros::PointCloud2>(data)
+                .ok()
+                .map(|m| m.header.frame_id);
+        }
         match &use_odom {
             Some(topic) if &c.topic == topic => {
                 let ok = ros::decode::<ros::Odometry>(data).is_ok_and(|m| timeline.add_odometry(&m));
@@ -323,7 +348,37 @@ fn read_poses(
     }
     timeline.sort();
     summary.poses = timeline.len() as u64;
-    Ok(timeline)
+    Ok(Frames {
+        timeline,
+        statics,
+        cloud_frame,
+    })
+}
+
+/// The topic of static transforms (the sensor's mount on the base).
+const STATIC_TF_TOPIC: &str = "/tf_static";
+
+/// The sensor's pose on the base and where it came from: `--sensor-to-base`, else the
+/// `/tf_static` chain from the base frame to the cloud's frame.
+fn sensor_mount(
+    opts: &ReplayOptions,
+    frames: &Frames,
+) -> Result<(Isometry3<f64>, &'static str), ReplayError> {
+    if let Some(v) = &opts.sensor_to_base {
+        return Ok((mount(v)?, "--sensor-to-base"));
+    }
+    let sensor = frames.cloud_frame.as_deref().unwrap_or_default();
+    if sensor.is_empty() || sensor == opts.base_frame {
+        return Ok((Isometry3::identity(), "identity"));
+    }
+    poses::static_mount(&frames.statics, &opts.base_frame, sensor)
+        .map(|m| (m, STATIC_TF_TOPIC))
+        .ok_or_else(|| {
+            ReplayError::Option(format!(
+                "no {STATIC_TF_TOPIC} chain from {} to the clouds' frame {sensor:?}: give --sensor-to-base",
+                opts.base_frame
+            ))
+        })
 }
 
 /// The scan header of a cloud at `stamp_ns` whose sensor is at `pose` with `twist` (sensor
@@ -387,7 +442,6 @@ pub fn run(
         (Pace::Accepted, Some(c)) => Some(c),
         (Pace::Recorded, _) => None,
     };
-    let sensor_to_base = mount(&opts.sensor_to_base)?;
     let started = Instant::now();
     let topics = list(&opts.file)?;
     let cloud_topic = pick(
@@ -398,7 +452,10 @@ pub fn run(
     )?
     .ok_or_else(|| ReplayError::Topic("no CDR sensor_msgs/msg/PointCloud2 topic in the file".into()))?;
     let mut summary = ReplaySummary::default();
-    let timeline = read_poses(opts, &topics, &mut summary)?;
+    let frames = read_poses(opts, &topics, &cloud_topic, &mut summary)?;
+    let (sensor_to_base, from) = sensor_mount(opts, &frames)?;
+    summary.mount_from = from.to_owned();
+    let timeline = &frames.timeline;
     progress(&format!(
         "{cloud_topic}: {} clouds; {} pose samples",
         topics

@@ -26,7 +26,7 @@ pub struct Timeline {
 }
 
 /// A pose as an isometry (`None` when not finite or the quaternion is far from unit).
-fn isometry(p: &ros::Vector3, q: &ros::Quaternion) -> Option<Isometry3<f64>> {
+pub fn isometry(p: &ros::Vector3, q: &ros::Quaternion) -> Option<Isometry3<f64>> {
     let quat = Quaternion::new(q.w, q.x, q.y, q.z);
     let norm = quat.norm();
     let finite = [p.x, p.y, p.z, q.x, q.y, q.z, q.w].iter().all(|v| v.is_finite());
@@ -125,6 +125,30 @@ impl Timeline {
     }
 }
 
+/// Most links followed from the sensor's frame up to the base in `/tf_static`.
+const MAX_STATIC_LINKS: usize = 16;
+
+/// The pose of `sensor_frame` on `base_frame` through the static transforms (each the pose of
+/// its child in its parent), following child → parent links; the identity when the frames are
+/// the same, `None` when no chain joins them.
+pub fn static_mount(
+    transforms: &[ros::TransformStamped],
+    base_frame: &str,
+    sensor_frame: &str,
+) -> Option<Isometry3<f64>> {
+    let mut pose = Isometry3::identity();
+    let mut frame = sensor_frame;
+    for _ in 0..MAX_STATIC_LINKS {
+        if frame == base_frame {
+            return Some(pose);
+        }
+        let link = transforms.iter().find(|t| t.child_frame_id == frame)?;
+        pose = isometry(&link.transform.translation, &link.transform.rotation)? * pose;
+        frame = &link.header.frame_id;
+    }
+    None
+}
+
 /// The sensor's twist in its own frame, from the base's (base frame) through the sensor's pose
 /// on the base: ω_s = Rᵀ ω_b, v_s = Rᵀ (v_b + ω_b × t).
 pub fn sensor_twist(base_twist: Twist, sensor_to_base: &Isometry3<f64>) -> Twist {
@@ -199,5 +223,34 @@ mod tests {
         let (v, w) = sensor_twist((Vector3::new(1.0, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.5)), &mount);
         assert!((v - Vector3::new(1.0, 0.5, 0.0)).norm() < 1e-12);
         assert!((w.z - 0.5).abs() < 1e-12);
+        // base_link → mast (1 m up) → lidar (turned 90° about z, 0.2 m ahead on the mast).
+        let link = |parent: &str, child: &str, x: f64, z: f64, yaw: f64| ros::TransformStamped {
+            header: ros::Header {
+                stamp: ros::Time::default(),
+                frame_id: parent.into(),
+            },
+            child_frame_id: child.into(),
+            transform: ros::Transform {
+                translation: ros::Vector3 { x, y: 0.0, z },
+                rotation: ros::Quaternion {
+                    x: 0.0,
+                    y: 0.0,
+                    z: (0.5 * yaw).sin(),
+                    w: (0.5 * yaw).cos(),
+                },
+            },
+        };
+        let tf = [
+            link("mast", "lidar", 0.2, 0.0, std::f64::consts::FRAC_PI_2),
+            link("base_link", "mast", 0.0, 1.0, 0.0),
+        ];
+        let m = static_mount(&tf, "base_link", "lidar").expect("a chain");
+        assert!((m.translation.vector - Vector3::new(0.2, 0.0, 1.0)).norm() < 1e-12);
+        assert!((m.rotation.euler_angles().2 - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert_eq!(
+            static_mount(&tf, "base_link", "base_link"),
+            Some(Isometry3::identity())
+        );
+        assert!(static_mount(&tf, "base_link", "camera").is_none());
     }
 }

@@ -1,6 +1,7 @@
 //! Simulated scans written as a rosbag2 MCAP recording: an organized PointCloud2 per scan (x, y,
-//! z float32, ring uint16, t uint32 ns; no-returns NaN) in the sensor frame, and the base pose
-//! on nav_msgs/Odometry and /tf (odom → base_link). What `rangegp replay` is tested on.
+//! z float32, ring uint16, t uint32 ns; no-returns NaN) in the sensor frame ("lidar"), the base
+//! pose on nav_msgs/Odometry and /tf (odom → base_link), and the mount on /tf_static
+//! (base_link → lidar). What `rangegp replay` is tested on.
 
 use super::ros::{self, datatype};
 use crate::scangen::GeneratedScan;
@@ -145,6 +146,7 @@ pub fn write<W: Write + Seek>(
     let clouds = channel(ros::POINT_CLOUD2, &opts.cloud_topic)?;
     let odom = channel(ros::ODOMETRY, &opts.odom_topic)?;
     let tf = channel(ros::TF_MESSAGE, "/tf")?;
+    let tf_static = channel(ros::TF_MESSAGE, "/tf_static")?;
     let mut sequence = 0u32;
     let mut put = |w: &mut mcap::Writer<_>, channel_id: u16, stamp: u64, data: &[u8]| {
         sequence += 1;
@@ -157,6 +159,23 @@ pub fn write<W: Write + Seek>(
         w.write_to_known_channel(&header, data)
     };
     let base_to_sensor = opts.sensor_to_base.inverse();
+    if let Some(first) = scans.first() {
+        let (translation, rotation) = pose_msg(&opts.sensor_to_base);
+        let mount = ros::TfMessage {
+            transforms: vec![ros::TransformStamped {
+                header: ros::Header {
+                    stamp: ros::Time::from_ns(first.header.stamp_ns),
+                    frame_id: "base_link".into(),
+                },
+                child_frame_id: "lidar".into(),
+                transform: ros::Transform {
+                    translation,
+                    rotation,
+                },
+            }],
+        };
+        put(&mut w, tf_static, first.header.stamp_ns, &ros::encode(&mount)?)?;
+    }
     for scan in scans {
         let stamp = scan.header.stamp_ns;
         let base = scan.pose * base_to_sensor;
