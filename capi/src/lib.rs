@@ -65,8 +65,8 @@ thread_local! {
     static LAST_ERROR: RefCell<CString> = RefCell::new(CString::default());
 }
 
-/// Records `message` as the thread's last error and returns `status`.
-fn fail(status: RangegpStatus, message: impl std::fmt::Display) -> RangegpStatus {
+/// Records `message` as the thread's last error (empty on success) and returns `status`.
+fn outcome(status: RangegpStatus, message: impl std::fmt::Display) -> RangegpStatus {
     let text = message.to_string().replace('\0', " ");
     LAST_ERROR.with(|e| *e.borrow_mut() = CString::new(text).unwrap_or_default());
     status
@@ -83,7 +83,7 @@ fn client_failure(e: rangegp_client::ClientError) -> RangegpStatus {
         rangegp_client::ClientError::Server { .. } => RangegpStatus::Refused,
         _ => RangegpStatus::Unavailable,
     };
-    fail(status, error_chain(&e))
+    outcome(status, error_chain(&e))
 }
 
 /// An error and its sources, one line.
@@ -104,12 +104,12 @@ fn error_chain(e: &dyn std::error::Error) -> String {
 /// `s` is null or a NUL-terminated string.
 unsafe fn text<'a>(s: *const c_char, what: &str) -> Result<&'a str, RangegpStatus> {
     if s.is_null() {
-        return Err(fail(RangegpStatus::InvalidArgument, format!("{what} is null")));
+        return Err(outcome(RangegpStatus::InvalidArgument, format!("{what} is null")));
     }
     // SAFETY: non-null and NUL-terminated (the caller's promise).
     unsafe { CStr::from_ptr(s) }
         .to_str()
-        .map_err(|_| fail(RangegpStatus::InvalidArgument, format!("{what} is not UTF-8")))
+        .map_err(|_| outcome(RangegpStatus::InvalidArgument, format!("{what} is not UTF-8")))
 }
 
 /// The calling thread's last error message (empty after success); valid until the thread's next
@@ -133,7 +133,7 @@ pub unsafe extern "C" fn rangegp_client_open(
     out: *mut *mut RangegpClient,
 ) -> RangegpStatus {
     if out.is_null() {
-        return fail(RangegpStatus::InvalidArgument, "out is null");
+        return outcome(RangegpStatus::InvalidArgument, "out is null");
     }
     // SAFETY: the caller's promise for both strings.
     let (connect, map_id) = match unsafe { (text(connect, "connect"), text(map_id, "map_id")) } {
@@ -148,7 +148,7 @@ pub unsafe extern "C" fn rangegp_client_open(
         Ok(c) => {
             // SAFETY: `out` is non-null and valid for a write (the caller's promise).
             unsafe { *out = Box::into_raw(Box::new(RangegpClient(c))) };
-            fail(RangegpStatus::Ok, "")
+            outcome(RangegpStatus::Ok, "")
         }
         Err(e) => client_failure(e),
     }
@@ -162,10 +162,10 @@ pub unsafe extern "C" fn rangegp_client_open(
 pub unsafe extern "C" fn rangegp_client_wait(client: *const RangegpClient, timeout_ms: u32) -> RangegpStatus {
     // SAFETY: a live handle (the caller's promise).
     let Some(c) = (unsafe { client.as_ref() }) else {
-        return fail(RangegpStatus::InvalidArgument, "client is null");
+        return outcome(RangegpStatus::InvalidArgument, "client is null");
     };
     match c.0.wait_for_daemon(Duration::from_millis(u64::from(timeout_ms))) {
-        Ok(()) => fail(RangegpStatus::Ok, ""),
+        Ok(()) => outcome(RangegpStatus::Ok, ""),
         Err(e) => client_failure(e),
     }
 }
@@ -186,13 +186,13 @@ pub unsafe extern "C" fn rangegp_elevation(
 ) -> RangegpStatus {
     // SAFETY: a live handle (the caller's promise).
     let Some(c) = (unsafe { client.as_ref() }) else {
-        return fail(RangegpStatus::InvalidArgument, "client is null");
+        return outcome(RangegpStatus::InvalidArgument, "client is null");
     };
     if n == 0 {
-        return fail(RangegpStatus::Ok, "");
+        return outcome(RangegpStatus::Ok, "");
     }
     if xy.is_null() || z.is_null() || variance.is_null() {
-        return fail(RangegpStatus::InvalidArgument, "xy, z or variance is null");
+        return outcome(RangegpStatus::InvalidArgument, "xy, z or variance is null");
     }
     // SAFETY: valid for 2n reads and n writes each (the caller's promise).
     let (xy, z, variance) = unsafe {
@@ -209,7 +209,7 @@ pub unsafe extern "C" fn rangegp_elevation(
                 *z = item.z_m.unwrap_or(f64::NAN);
                 *v = item.z_var_m2.unwrap_or(f64::NAN);
             }
-            fail(RangegpStatus::Ok, "")
+            outcome(RangegpStatus::Ok, "")
         }
         Err(e) => client_failure(e),
     }
@@ -241,7 +241,7 @@ pub unsafe extern "C" fn rangegp_publisher_open(
     out: *mut *mut RangegpPublisher,
 ) -> RangegpStatus {
     if out.is_null() {
-        return fail(RangegpStatus::InvalidArgument, "out is null");
+        return outcome(RangegpStatus::InvalidArgument, "out is null");
     }
     // SAFETY: the caller's promise.
     let service = match unsafe { text(service, "service") } {
@@ -252,9 +252,9 @@ pub unsafe extern "C" fn rangegp_publisher_open(
         Ok(p) => {
             // SAFETY: `out` is non-null and valid for a write (the caller's promise).
             unsafe { *out = Box::into_raw(Box::new(RangegpPublisher(p))) };
-            fail(RangegpStatus::Ok, "")
+            outcome(RangegpStatus::Ok, "")
         }
-        Err(e) => fail(RangegpStatus::Unavailable, error_chain(&e)),
+        Err(e) => outcome(RangegpStatus::Unavailable, error_chain(&e)),
     }
 }
 
@@ -278,10 +278,10 @@ pub unsafe extern "C" fn rangegp_publish(
 ) -> RangegpStatus {
     // SAFETY: a live handle and a readable info (the caller's promise).
     let (Some(p), Some(info)) = (unsafe { publisher.as_mut() }, unsafe { info.as_ref() }) else {
-        return fail(RangegpStatus::InvalidArgument, "publisher or info is null");
+        return outcome(RangegpStatus::InvalidArgument, "publisher or info is null");
     };
     if n > 0 && (ranges.is_null() || inclinations.is_null() || azimuths.is_null()) {
-        return fail(RangegpStatus::InvalidArgument, "a ray array is null");
+        return outcome(RangegpStatus::InvalidArgument, "a ray array is null");
     }
     let [x, y, z] = info.position;
     let [qx, qy, qz, qw] = info.orientation_xyzw;
@@ -290,7 +290,7 @@ pub unsafe extern "C" fn rangegp_publish(
         .iter()
         .all(|v| v.is_finite())
     {
-        return fail(
+        return outcome(
             RangegpStatus::InvalidArgument,
             "the pose, range or noise is not finite",
         );
@@ -343,9 +343,9 @@ pub unsafe extern "C" fn rangegp_publish(
                 // SAFETY: non-null and valid for a write (the caller's promise).
                 unsafe { *sequence = seq };
             }
-            fail(RangegpStatus::Ok, "")
+            outcome(RangegpStatus::Ok, "")
         }
-        Err(e) => fail(RangegpStatus::PublishFailed, error_chain(&e)),
+        Err(e) => outcome(RangegpStatus::PublishFailed, error_chain(&e)),
     }
 }
 

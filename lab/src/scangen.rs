@@ -66,8 +66,12 @@ pub fn pose_header(
 
 /// `header` with the sweep's twist (the daemon deskews each point by its `time_offset_ns`).
 pub fn with_motion(header: ScanHeader, motion: &SweepMotion) -> ScanHeader {
-    let ([vx_mps, vy_mps, vz_mps], [wx_radps, wy_radps, wz_radps]) =
-        (motion.linear_mps.into(), motion.angular_radps.into());
+    with_twist(header, motion.linear_mps.into(), motion.angular_radps.into())
+}
+
+/// `header` with the sensor's linear (m/s) and angular (rad/s) velocity in its own frame.
+pub fn with_twist(header: ScanHeader, linear: [f64; 3], angular: [f64; 3]) -> ScanHeader {
+    let ([vx_mps, vy_mps, vz_mps], [wx_radps, wy_radps, wz_radps]) = (linear, angular);
     ScanHeader {
         vx_mps,
         vy_mps,

@@ -31,6 +31,24 @@ pub fn unique_id(prefix: &str) -> String {
     )
 }
 
+/// Whether `program` runs (`program --version`). Without it a test is skipped where it runs by
+/// hand (and says so) but fails under CI (`CI` set), so that CI never passes it silently.
+pub fn tool_or_skip(program: &str, exercised: &str) -> Result<bool> {
+    if std::process::Command::new(program)
+        .arg("--version")
+        .output()
+        .is_ok()
+    {
+        return Ok(true);
+    }
+    anyhow::ensure!(
+        std::env::var_os("CI").is_none(),
+        "{program} is required in CI ({exercised})"
+    );
+    eprintln!("SKIPPED: {program} not found; {exercised} was not exercised");
+    Ok(false)
+}
+
 /// A running daemon with a connected client.
 pub struct Harness {
     /// The daemon (dropped last).

@@ -4,14 +4,14 @@
 //! (docs/INTEROP.md "Recorded ROS 2 data").
 //!
 //! The file is streamed twice with bounded memory (Foxglove's sans-io reader; compressed chunks
-//! included): once for the poses, once for the clouds.
+//! included): once for the topics, poses and frames, once for the clouds.
 
 pub mod cloud;
 pub mod poses;
 pub mod record;
 pub mod ros;
 
-use crate::scangen::pose_header;
+use crate::scangen::{pose_header, with_twist};
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -232,11 +232,26 @@ fn for_each_message(
     Ok(())
 }
 
-/// The topics of `path`, sorted by name.
-pub fn list(path: &Path) -> Result<Vec<TopicInfo>, ReplayError> {
-    let mut topics: BTreeMap<String, TopicInfo> = BTreeMap::new();
-    for_each_message(path, |c, t, _| {
-        let e = topics.entry(c.topic.clone()).or_insert_with(|| TopicInfo {
+/// What the first pass over a file gathers: its topics and, when asked (`frames`: the TF topic
+/// and the base frame), every pose sample of every possible source, the static transforms and
+/// each cloud topic's frame, so that one pass serves whichever topics are then chosen.
+#[derive(Default)]
+struct Survey {
+    topics: BTreeMap<String, TopicInfo>,
+    /// Pose samples and undecodable or invalid messages per odometry topic.
+    odometry: HashMap<String, (Timeline, u64)>,
+    /// The base's poses from the TF topic, and invalid messages or transforms there.
+    tf: (Timeline, u64),
+    statics: Vec<ros::TransformStamped>,
+    /// The first cloud's frame per cloud topic.
+    cloud_frames: HashMap<String, String>,
+}
+
+/// The first pass over `path` (see [`Survey`]).
+fn survey(path: &Path, frames: Option<(&str, &str)>) -> Result<Survey, ReplayError> {
+    let mut s = Survey::default();
+    for_each_message(path, |c, t, data| {
+        let e = s.topics.entry(c.topic.clone()).or_insert_with(|| TopicInfo {
             topic: c.topic.clone(),
             schema: c.schema.clone(),
             encoding: c.encoding.clone(),
@@ -245,20 +260,50 @@ pub fn list(path: &Path) -> Result<Vec<TopicInfo>, ReplayError> {
         });
         e.messages += 1;
         e.span_ns = (e.span_ns.0.min(t), e.span_ns.1.max(t));
+        let Some((tf_topic, base_frame)) = frames else {
+            return Ok(());
+        };
+        match c.schema.as_str() {
+            ros::ODOMETRY => {
+                let (timeline, bad) = s.odometry.entry(c.topic.clone()).or_default();
+                let ok = ros::decode::<ros::Odometry>(data).is_ok_and(|m| timeline.add_odometry(&m));
+                *bad += u64::from(!ok);
+            }
+            ros::TF_MESSAGE if c.topic == STATIC_TF_TOPIC => {
+                if let Ok(m) = ros::decode::<ros::TfMessage>(data) {
+                    s.statics.extend(m.transforms);
+                }
+            }
+            ros::TF_MESSAGE if c.topic == tf_topic => match ros::decode::<ros::TfMessage>(data) {
+                Ok(m) => s.tf.1 += s.tf.0.add_tf(&m, base_frame).1 as u64,
+                Err(_) => s.tf.1 += 1,
+            },
+            ros::POINT_CLOUD2 if !s.cloud_frames.contains_key(&c.topic) => {
+                if let Ok(m) = ros::decode::<ros::PointCloud2>(data) {
+                    s.cloud_frames.insert(c.topic.clone(), m.header.frame_id);
+                }
+            }
+            _ => {}
+        }
         Ok(())
     })?;
-    Ok(topics.into_values().collect())
+    Ok(s)
+}
+
+/// The topics of `path`, sorted by name.
+pub fn list(path: &Path) -> Result<Vec<TopicInfo>, ReplayError> {
+    Ok(survey(path, None)?.topics.into_values().collect())
 }
 
 /// The topic of type `schema` to use: `chosen`, else the file's only one.
 fn pick(
-    topics: &[TopicInfo],
+    topics: &BTreeMap<String, TopicInfo>,
     schema: &str,
     chosen: Option<&str>,
     flag: &str,
 ) -> Result<Option<String>, ReplayError> {
     let of_type: Vec<&str> = topics
-        .iter()
+        .values()
         .filter(|t| t.schema == schema && t.encoding == "cdr")
         .map(|t| t.topic.as_str())
         .collect();
@@ -289,56 +334,27 @@ pub fn mount(v: &[f64]) -> Result<Isometry3<f64>, ReplayError> {
     ))
 }
 
-/// What the first pass over a file gathers: the base's poses, the static transforms and the
-/// first cloud's frame.
-struct Frames {
-    timeline: Timeline,
-    statics: Vec<ros::TransformStamped>,
-    cloud_frame: Option<String>,
-}
-
-/// Reads every pose sample of the chosen source, the static transforms and the cloud frame.
-fn read_poses(
+/// The base's poses from the chosen source, sorted; counts them and the bad messages there.
+fn choose_poses(
     opts: &ReplayOptions,
-    topics: &[TopicInfo],
-    cloud_topic: &str,
+    survey: &mut Survey,
     summary: &mut ReplaySummary,
-) -> Result<Frames, ReplayError> {
-    let odom = pick(topics, ros::ODOMETRY, opts.odom_topic.as_deref(), "--odom-topic")?;
+) -> Result<Timeline, ReplayError> {
+    let odom = pick(
+        &survey.topics,
+        ros::ODOMETRY,
+        opts.odom_topic.as_deref(),
+        "--odom-topic",
+    )?;
     let use_odom = match opts.pose_source {
         PoseSource::Odom => Some(odom.ok_or(ReplayError::NoPoses("nav_msgs/Odometry"))?),
         PoseSource::Tf => None,
         PoseSource::Auto => odom,
     };
-    let mut timeline = Timeline::default();
-    let mut statics = Vec::new();
-    let mut cloud_frame = None;
-    for_each_message(&opts.file, |c, _, data| {
-        if c.topic == STATIC_TF_TOPIC && c.schema == ros::TF_MESSAGE {
-            if let Ok(m) = ros::decode::<ros::TfMessage>(data) {
-                statics.extend(m.transforms);
-            }
-        }
-        if cloud_frame.is_none() && c.topic == cloud_topic {
-            cloud_frame = ros::decode::<ros::PointCloud2>(data)
-                .ok()
-                .map(|m| m.header.frame_id);
-        }
-        match &use_odom {
-            Some(topic) if &c.topic == topic => {
-                let ok = ros::decode::<ros::Odometry>(data).is_ok_and(|m| timeline.add_odometry(&m));
-                summary.bad_poses += u64::from(!ok);
-            }
-            None if c.topic == opts.tf_topic && c.schema == ros::TF_MESSAGE => {
-                match ros::decode::<ros::TfMessage>(data) {
-                    Ok(m) => summary.bad_poses += timeline.add_tf(&m, &opts.base_frame).1 as u64,
-                    Err(_) => summary.bad_poses += 1,
-                }
-            }
-            _ => {}
-        }
-        Ok(())
-    })?;
+    let (mut timeline, bad) = match &use_odom {
+        Some(topic) => survey.odometry.remove(topic).unwrap_or_default(),
+        None => std::mem::take(&mut survey.tf),
+    };
     if timeline.is_empty() {
         return Err(ReplayError::NoPoses(if use_odom.is_some() {
             "nav_msgs/Odometry"
@@ -348,11 +364,8 @@ fn read_poses(
     }
     timeline.sort();
     summary.poses = timeline.len() as u64;
-    Ok(Frames {
-        timeline,
-        statics,
-        cloud_frame,
-    })
+    summary.bad_poses = bad;
+    Ok(timeline)
 }
 
 /// The topic of static transforms (the sensor's mount on the base).
@@ -362,16 +375,17 @@ const STATIC_TF_TOPIC: &str = "/tf_static";
 /// `/tf_static` chain from the base frame to the cloud's frame.
 fn sensor_mount(
     opts: &ReplayOptions,
-    frames: &Frames,
+    statics: &[ros::TransformStamped],
+    cloud_frame: Option<&str>,
 ) -> Result<(Isometry3<f64>, &'static str), ReplayError> {
     if let Some(v) = &opts.sensor_to_base {
         return Ok((mount(v)?, "--sensor-to-base"));
     }
-    let sensor = frames.cloud_frame.as_deref().unwrap_or_default();
+    let sensor = cloud_frame.unwrap_or_default();
     if sensor.is_empty() || sensor == opts.base_frame {
         return Ok((Isometry3::identity(), "identity"));
     }
-    poses::static_mount(&frames.statics, &opts.base_frame, sensor)
+    poses::static_mount(statics, &opts.base_frame, sensor)
         .map(|m| (m, STATIC_TF_TOPIC))
         .ok_or_else(|| {
             ReplayError::Option(format!(
@@ -390,25 +404,23 @@ fn header(
     twist: Option<poses::Twist>,
 ) -> ScanHeader {
     let (v, w) = twist.unwrap_or_default();
-    ScanHeader {
-        vx_mps: v.x,
-        vy_mps: v.y,
-        vz_mps: v.z,
-        wx_radps: w.x,
-        wy_radps: w.y,
-        wz_radps: w.z,
-        ..pose_header(pose, stamp_ns, opts.max_range_m, opts.range_noise_per_m)
-    }
+    let at = pose_header(pose, stamp_ns, opts.max_range_m, opts.range_noise_per_m);
+    with_twist(at, v.into(), w.into())
 }
 
-/// Waits (bounded) until the daemon has taken one more scan than `before` (accepted, rejected
-/// or skipped).
-fn wait_taken(client: &Client, before: u64, sequence: u64, timeout: Duration) -> Result<(), ReplayError> {
+/// Scans the daemon has taken so far: accepted, rejected or skipped.
+fn taken(client: &Client) -> Result<u64, ReplayError> {
+    let s = client.status()?;
+    Ok(s.scans_accepted + s.scans_rejected + s.scans_skipped)
+}
+
+/// Waits (bounded) until the daemon has taken more than `before` scans; returns how many.
+fn wait_taken(client: &Client, before: u64, sequence: u64, timeout: Duration) -> Result<u64, ReplayError> {
     let deadline = Instant::now() + timeout;
     loop {
-        let s = client.status()?;
-        if s.scans_accepted + s.scans_rejected + s.scans_skipped > before {
-            return Ok(());
+        let now = taken(client)?;
+        if now > before {
+            return Ok(now);
         }
         if Instant::now() > deadline {
             return Err(ReplayError::NotTaken {
@@ -443,30 +455,28 @@ pub fn run(
         (Pace::Recorded, _) => None,
     };
     let started = Instant::now();
-    let topics = list(&opts.file)?;
+    let mut survey = survey(&opts.file, Some((&opts.tf_topic, &opts.base_frame)))?;
     let cloud_topic = pick(
-        &topics,
+        &survey.topics,
         ros::POINT_CLOUD2,
         opts.cloud_topic.as_deref(),
         "--cloud-topic",
     )?
     .ok_or_else(|| ReplayError::Topic("no CDR sensor_msgs/msg/PointCloud2 topic in the file".into()))?;
     let mut summary = ReplaySummary::default();
-    let frames = read_poses(opts, &topics, &cloud_topic, &mut summary)?;
-    let (sensor_to_base, from) = sensor_mount(opts, &frames)?;
+    let timeline = choose_poses(opts, &mut survey, &mut summary)?;
+    let cloud_frame = survey.cloud_frames.get(&cloud_topic).map(String::as_str);
+    let (sensor_to_base, from) = sensor_mount(opts, &survey.statics, cloud_frame)?;
     summary.mount_from = from.to_owned();
-    let timeline = &frames.timeline;
     progress(&format!(
         "{cloud_topic}: {} clouds; {} pose samples",
-        topics
-            .iter()
-            .find(|t| t.topic == cloud_topic)
-            .map_or(0, |t| t.messages),
+        survey.topics.get(&cloud_topic).map_or(0, |t| t.messages),
         summary.poses
     ));
     let mut publisher = ScanPublisher::new(&opts.service, opts.publisher_id, opts.max_points)?;
     let timeout = Duration::from_secs_f64(opts.accept_timeout_s.max(0.0));
     let mut first: Option<(u64, Instant)> = None;
+    let mut taken_before = client.map(taken).transpose()?;
     for_each_message(&opts.file, |c, log_time, data| {
         if c.topic != cloud_topic {
             return Ok(());
@@ -509,17 +519,11 @@ pub fn run(
             let due = Duration::from_secs_f64(log_time.saturating_sub(t0) as f64 * 1e-9 / opts.speed);
             std::thread::sleep(due.saturating_sub(w0.elapsed()));
         }
-        let before = match client {
-            Some(cl) => {
-                let s = cl.status()?;
-                Some(s.scans_accepted + s.scans_rejected + s.scans_skipped)
-            }
-            None => None,
-        };
         let sequence = publisher.publish(header(opts, stamp, &pose, twist), &points)?;
         summary.published += 1;
-        if let (Some(cl), Some(before)) = (client, before) {
-            wait_taken(cl, before, sequence, timeout)?;
+        if let (Some(cl), Some(before)) = (client, taken_before) {
+            // The count this wait ends on is the next scan's `before`: one status a scan.
+            taken_before = Some(wait_taken(cl, before, sequence, timeout)?);
         }
         if summary.published % 50 == 0 {
             progress(&format!("{} scans sent", summary.published));

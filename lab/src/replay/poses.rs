@@ -26,7 +26,7 @@ pub struct Timeline {
 }
 
 /// A pose as an isometry (`None` when not finite or the quaternion is far from unit).
-pub fn isometry(p: &ros::Vector3, q: &ros::Quaternion) -> Option<Isometry3<f64>> {
+fn isometry(p: &ros::Vector3, q: &ros::Quaternion) -> Option<Isometry3<f64>> {
     let quat = Quaternion::new(q.w, q.x, q.y, q.z);
     let norm = quat.norm();
     let finite = [p.x, p.y, p.z, q.x, q.y, q.z, q.w].iter().all(|v| v.is_finite());

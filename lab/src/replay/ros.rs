@@ -10,8 +10,6 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 /// Encapsulation header of little-endian plain CDR (what ROS 2 writes on x86 and ARM).
 const CDR_LE: [u8; 4] = [0x00, 0x01, 0x00, 0x00];
-/// Encapsulation header of big-endian plain CDR.
-const CDR_BE: [u8; 4] = [0x00, 0x00, 0x00, 0x00];
 
 /// MCAP schema names of the messages read.
 pub const POINT_CLOUD2: &str = "sensor_msgs/msg/PointCloud2";
@@ -55,13 +53,6 @@ pub fn decode<T: for<'de> Deserialize<'de>>(bytes: &[u8]) -> Result<T, DecodeErr
 pub fn encode<T: Serialize>(message: &T) -> Result<Vec<u8>, EncodeError> {
     let mut out = CDR_LE.to_vec();
     out.extend(cdr_encoding::to_vec::<T, LittleEndian>(message)?);
-    Ok(out)
-}
-
-/// Encodes a message as big-endian CDR (tests: a recording from a big-endian machine).
-pub fn encode_big_endian<T: Serialize>(message: &T) -> Result<Vec<u8>, EncodeError> {
-    let mut out = CDR_BE.to_vec();
-    out.extend(cdr_encoding::to_vec::<T, BigEndian>(message)?);
     Ok(out)
 }
 
@@ -418,7 +409,9 @@ mod tests {
         assert_eq!(&body[24..34], b"base_link\0");
         assert_eq!(&body[40..48], &1.0f64.to_le_bytes());
         assert_eq!(decode::<Odometry>(&le).expect("decode"), odom);
-        let be = encode_big_endian(&odom).expect("encode");
+        // A recording from a big-endian machine: encapsulation 0x0000, the body big-endian.
+        let mut be = vec![0x00, 0x00, 0x00, 0x00];
+        be.extend(cdr_encoding::to_vec::<_, BigEndian>(&odom).expect("encode"));
         assert_eq!(decode::<Odometry>(&be).expect("decode"), odom);
         assert!(matches!(
             decode::<Odometry>(&le[..2]),
