@@ -83,19 +83,7 @@ fn client_failure(e: rangegp_client::ClientError) -> RangegpStatus {
         rangegp_client::ClientError::Server { .. } => RangegpStatus::Refused,
         _ => RangegpStatus::Unavailable,
     };
-    outcome(status, error_chain(&e))
-}
-
-/// An error and its sources, one line.
-fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        text.push_str(": ");
-        text.push_str(&s.to_string());
-        source = s.source();
-    }
-    text
+    outcome(status, rangegp_proto::error_chain(&e))
 }
 
 /// A C string argument as UTF-8.
@@ -254,7 +242,7 @@ pub unsafe extern "C" fn rangegp_publisher_open(
             unsafe { *out = Box::into_raw(Box::new(RangegpPublisher(p))) };
             outcome(RangegpStatus::Ok, "")
         }
-        Err(e) => outcome(RangegpStatus::Unavailable, error_chain(&e)),
+        Err(e) => outcome(RangegpStatus::Unavailable, rangegp_proto::error_chain(&e)),
     }
 }
 
@@ -345,7 +333,7 @@ pub unsafe extern "C" fn rangegp_publish(
             }
             outcome(RangegpStatus::Ok, "")
         }
-        Err(e) => outcome(RangegpStatus::PublishFailed, error_chain(&e)),
+        Err(e) => outcome(RangegpStatus::PublishFailed, rangegp_proto::error_chain(&e)),
     }
 }
 

@@ -4,6 +4,7 @@ use nalgebra::Isometry3;
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
 use rangegp_proto::scan::{ScanHeader, ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID};
+use rangegp_ros::scan::{pose_header, with_twist};
 use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset, SimRay, SweepMotion};
 
 /// Converts simulated rays taken from `pose` into a header (sequence and publisher id left for
@@ -39,48 +40,9 @@ pub fn to_message(
     (header, points)
 }
 
-/// A scan header at `stamp_ns` for a sensor at `pose` with its range and noise model (no
-/// motion; sequence, publisher id and point count left for the publisher).
-pub fn pose_header(
-    pose: &Isometry3<f64>,
-    stamp_ns: u64,
-    max_range_m: f64,
-    range_noise_per_m: f64,
-) -> ScanHeader {
-    let q = pose.rotation.quaternion();
-    let t = pose.translation.vector;
-    ScanHeader {
-        stamp_ns,
-        px_m: t.x,
-        py_m: t.y,
-        pz_m: t.z,
-        qx: q.i,
-        qy: q.j,
-        qz: q.k,
-        qw: q.w,
-        max_range_m,
-        range_noise_per_m,
-        ..ScanHeader::default()
-    }
-}
-
 /// `header` with the sweep's twist (the daemon deskews each point by its `time_offset_ns`).
 pub fn with_motion(header: ScanHeader, motion: &SweepMotion) -> ScanHeader {
     with_twist(header, motion.linear_mps.into(), motion.angular_radps.into())
-}
-
-/// `header` with the sensor's linear (m/s) and angular (rad/s) velocity in its own frame.
-pub fn with_twist(header: ScanHeader, linear: [f64; 3], angular: [f64; 3]) -> ScanHeader {
-    let ([vx_mps, vy_mps, vz_mps], [wx_radps, wy_radps, wz_radps]) = (linear, angular);
-    ScanHeader {
-        vx_mps,
-        vy_mps,
-        vz_mps,
-        wx_radps,
-        wy_radps,
-        wz_radps,
-        ..header
-    }
 }
 
 /// A seeded world (terrain, path, sensor) producing scans along the path.

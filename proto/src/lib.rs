@@ -17,3 +17,16 @@ pub mod scan;
 
 /// Version of the whole contract (shared-memory layout and query messages); bumped on any change.
 pub const PROTOCOL_VERSION: u32 = 8;
+
+/// An error and its sources on one line, `: `-separated: what logs, status replies and C
+/// callers show (a `Display` alone drops the cause a user can act on).
+pub fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(cause) = source {
+        text.push_str(": ");
+        text.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    text
+}

@@ -36,8 +36,22 @@ pub struct ChildProcess {
 impl ChildProcess {
     /// Runs the ignored test `test_name` of this test binary as a child with `args`.
     pub fn spawn(test_name: &str, args: &str) -> Result<Self> {
+        Self::spawn_under(&[], test_name, args)
+    }
+
+    /// Like [`ChildProcess::spawn`], the test binary started by the command `wrapper` (program
+    /// and arguments, the binary's path and arguments appended), e.g. `unshare --net ...`.
+    pub fn spawn_under(wrapper: &[&str], test_name: &str, args: &str) -> Result<Self> {
         let exe = std::env::current_exe().context("locating the test binary")?;
-        let mut child = Command::new(exe)
+        let mut command = match wrapper.split_first() {
+            Some((program, rest)) => {
+                let mut c = Command::new(program);
+                c.args(rest).arg(exe);
+                c
+            }
+            None => Command::new(exe),
+        };
+        let mut child = command
             .args([
                 test_name,
                 "--exact",
@@ -89,6 +103,20 @@ impl ChildProcess {
             .context("running kill -STOP")?;
         anyhow::ensure!(status.success(), "kill -STOP failed: {status}");
         Ok(())
+    }
+
+    /// Waits (at most `timeout`) for the child to exit; true when it exited successfully.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Result<bool> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.child.try_wait().context("waiting for the child")? {
+                return Ok(status.success());
+            }
+            if Instant::now() > deadline {
+                bail!("child still running after {timeout:?}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 
     /// The child's process id.

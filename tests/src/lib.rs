@@ -2,6 +2,7 @@
 //! own iceoryx2 service, a client, a publisher, and bounded waits. No mocks: real transports.
 
 pub mod child;
+pub mod pyenv;
 
 use anyhow::{bail, Result};
 use rangegp_client::{Client, ScanPublisher};

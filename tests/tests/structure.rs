@@ -174,7 +174,17 @@ fn crate_src(name: &str) -> PathBuf {
 
 #[test]
 fn no_module_of_any_crate_imports_from_a_module_that_depends_on_it() {
-    for name in ["proto", "transport", "service", "client", "capi", "sim", "lab"] {
+    for name in [
+        "proto",
+        "transport",
+        "service",
+        "client",
+        "capi",
+        "ros",
+        "ros2",
+        "sim",
+        "lab",
+    ] {
         let edges = sibling_edges(&crate_src(name));
         if let Some((parent, c)) = cycle(&edges) {
             panic!(
@@ -293,5 +303,10 @@ fn the_daemon_links_no_lab_code_and_a_planner_no_simulator_or_pictures() {
     forbidden(
         "rangegp-client",
         &["rangegp-sim", "image", "colorous", "plotters"],
+    );
+    // The bridge runs on the robot beside the daemon: no daemon, simulator or lab inside it.
+    forbidden(
+        "rangegp-ros2",
+        &["rangegp-service", "rangegp-sim", "rangegp-lab", "plotters"],
     );
 }

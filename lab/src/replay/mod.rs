@@ -6,18 +6,15 @@
 //! The file is streamed twice with bounded memory (Foxglove's sans-io reader; compressed chunks
 //! included): once for the topics, poses and frames, once for the clouds.
 
-pub mod cloud;
-pub mod poses;
 pub mod record;
-pub mod ros;
 
-use crate::scangen::{pose_header, with_twist};
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
-use poses::Timeline;
 use rangegp_client::{Client, ClientError, PublishError, ScanPublisher};
-use rangegp_proto::scan::ScanHeader;
+use rangegp_ros::msg as ros;
+use rangegp_ros::poses::{self, Timeline};
+use rangegp_ros::scan::{from_cloud, RangeModel};
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap};
 use std::io::Read;
@@ -351,7 +348,7 @@ fn choose_poses(
         PoseSource::Tf => None,
         PoseSource::Auto => odom,
     };
-    let (mut timeline, bad) = match &use_odom {
+    let (timeline, bad) = match &use_odom {
         Some(topic) => survey.odometry.remove(topic).unwrap_or_default(),
         None => std::mem::take(&mut survey.tf),
     };
@@ -362,7 +359,6 @@ fn choose_poses(
             "/tf"
         }));
     }
-    timeline.sort();
     summary.poses = timeline.len() as u64;
     summary.bad_poses = bad;
     Ok(timeline)
@@ -393,19 +389,6 @@ fn sensor_mount(
                 opts.base_frame
             ))
         })
-}
-
-/// The scan header of a cloud at `stamp_ns` whose sensor is at `pose` with `twist` (sensor
-/// frame; zero when unknown).
-fn header(
-    opts: &ReplayOptions,
-    stamp_ns: u64,
-    pose: &Isometry3<f64>,
-    twist: Option<poses::Twist>,
-) -> ScanHeader {
-    let (v, w) = twist.unwrap_or_default();
-    let at = pose_header(pose, stamp_ns, opts.max_range_m, opts.range_noise_per_m);
-    with_twist(at, v.into(), w.into())
 }
 
 /// Scans the daemon has taken so far: accepted, rejected or skipped.
@@ -473,6 +456,10 @@ pub fn run(
         survey.topics.get(&cloud_topic).map_or(0, |t| t.messages),
         summary.poses
     ));
+    let model = RangeModel {
+        max_range_m: opts.max_range_m,
+        range_noise_per_m: opts.range_noise_per_m,
+    };
     let mut publisher = ScanPublisher::new(&opts.service, opts.publisher_id, opts.max_points)?;
     let timeout = Duration::from_secs_f64(opts.accept_timeout_s.max(0.0));
     let mut first: Option<(u64, Instant)> = None;
@@ -493,33 +480,20 @@ pub fn run(
             0 => log_time,
             s => s,
         };
-        let Some((base, base_twist)) = timeline.at(stamp) else {
-            summary.skip("no_pose");
-            return Ok(());
-        };
-        let points = match cloud::scan_points(&msg, opts.max_points) {
-            Ok(p) if p.is_empty() => {
-                summary.skip("empty");
-                return Ok(());
-            }
-            Ok(p) => p,
-            Err(cloud::CloudError::TooManyPoints { .. }) => {
-                summary.skip("too_many_points");
-                return Ok(());
-            }
-            Err(_) => {
-                summary.skip("layout");
-                return Ok(());
-            }
-        };
-        let twist = base_twist.map(|t| poses::sensor_twist(t, &sensor_to_base));
-        let pose = base * sensor_to_base;
+        let (header, points) =
+            match from_cloud(&msg, stamp, &timeline, &sensor_to_base, model, opts.max_points) {
+                Ok(scan) => scan,
+                Err(skip) => {
+                    summary.skip(skip.reason());
+                    return Ok(());
+                }
+            };
         if opts.pace == Pace::Recorded {
             let (t0, w0) = *first.get_or_insert((log_time, Instant::now()));
             let due = Duration::from_secs_f64(log_time.saturating_sub(t0) as f64 * 1e-9 / opts.speed);
             std::thread::sleep(due.saturating_sub(w0.elapsed()));
         }
-        let sequence = publisher.publish(header(opts, stamp, &pose, twist), &points)?;
+        let sequence = publisher.publish(header, &points)?;
         summary.published += 1;
         if let (Some(cl), Some(before)) = (client, taken_before) {
             // The count this wait ends on is the next scan's `before`: one status a scan.

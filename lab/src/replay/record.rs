@@ -3,10 +3,10 @@
 //! pose on nav_msgs/Odometry and /tf (odom → base_link), and the mount on /tf_static
 //! (base_link → lidar). What `rangegp replay` is tested on.
 
-use super::ros::{self, datatype};
 use crate::scangen::GeneratedScan;
 use mcap::records::MessageHeader;
 use nalgebra::Isometry3;
+use rangegp_ros::msg::{self as ros, datatype};
 use std::collections::BTreeMap;
 use std::io::{BufWriter, Seek, Write};
 

@@ -149,7 +149,7 @@ fn open_with_retry(
                 return Some(intake);
             }
             Err(e) if e.is_transient() => {
-                let cause = with_causes(&e);
+                let cause = rangegp_proto::error_chain(&e);
                 warn!(error = %cause, retry_in_ms = wait.as_millis() as u64, "cannot subscribe to scans; queries are still served");
                 metrics.set_ingest_state(Some(cause));
                 if let Some(r) = ready.take() {
@@ -373,16 +373,4 @@ fn log_cleanup(state: iceoryx2::node::CleanupState) {
             "dead iceoryx2 nodes"
         );
     }
-}
-
-/// `e` and its sources, `: `-separated (what status shows and the log says).
-fn with_causes(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(cause) = source {
-        text.push_str(": ");
-        text.push_str(&cause.to_string());
-        source = cause.source();
-    }
-    text
 }

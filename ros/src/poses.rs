@@ -2,7 +2,7 @@
 //! each cloud's stamp (linear in position, spherical in rotation), and the sensor's pose and twist
 //! through the fixed sensor-to-base transform (REP-105: base_link in odom or map).
 
-use super::ros;
+use crate::msg as ros;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
 /// Pose samples further than this from a stamp do not vouch for it, nanoseconds.
@@ -47,7 +47,7 @@ impl Timeline {
         let (l, a) = (m.twist.twist.linear, m.twist.twist.angular);
         let twist = Some((Vector3::new(l.x, l.y, l.z), Vector3::new(a.x, a.y, a.z)))
             .filter(|(l, a)| l.iter().chain(a.iter()).all(|v| v.is_finite()));
-        self.samples.push(Sample {
+        self.insert(Sample {
             stamp_ns: m.header.stamp.as_ns(),
             pose,
             twist,
@@ -62,7 +62,7 @@ impl Timeline {
         for t in m.transforms.iter().filter(|t| t.child_frame_id == base_frame) {
             match isometry(&t.transform.translation, &t.transform.rotation) {
                 Some(pose) => {
-                    self.samples.push(Sample {
+                    self.insert(Sample {
                         stamp_ns: t.header.stamp.as_ns(),
                         pose,
                         twist: None,
@@ -85,9 +85,27 @@ impl Timeline {
         self.samples.is_empty()
     }
 
-    /// Orders the samples by stamp (call once after adding).
-    pub fn sort(&mut self) {
-        self.samples.sort_by_key(|s| s.stamp_ns);
+    /// Keeps the samples in stamp order (appending when they come in order, as they do live).
+    fn insert(&mut self, sample: Sample) {
+        let at = self.samples.partition_point(|s| s.stamp_ns <= sample.stamp_ns);
+        self.samples.insert(at, sample);
+    }
+
+    /// Drops the samples older than `stamp_ns` except the newest of them (it still brackets a
+    /// stamp just after): what bounds a live timeline's memory.
+    pub fn forget_before(&mut self, stamp_ns: u64) {
+        let older = self.samples.partition_point(|s| s.stamp_ns < stamp_ns);
+        self.samples.drain(..older.saturating_sub(1));
+    }
+
+    /// Stamp of the newest sample.
+    pub fn newest_ns(&self) -> Option<u64> {
+        self.samples.last().map(|s| s.stamp_ns)
+    }
+
+    /// The newest sample's pose.
+    pub fn newest(&self) -> Option<Isometry3<f64>> {
+        self.samples.last().map(|s| s.pose)
     }
 
     /// The base pose at `stamp_ns` and its twist (linear, angular; base frame), interpolated
@@ -208,7 +226,6 @@ mod tests {
         let mut bad = odom(1_950_000_000, 1.0, 0.0);
         bad.pose.pose.orientation.w = 3.0;
         assert!(!t.add_odometry(&bad), "a non-unit quaternion is refused");
-        t.sort();
         let (mid, twist) = t.at(1_950_000_000).expect("between two samples");
         assert!((mid.translation.x - 1.5).abs() < 1e-12);
         assert!((mid.rotation.euler_angles().2 - 0.3).abs() < 1e-9);
@@ -218,6 +235,15 @@ mod tests {
             "within the gap after the last sample"
         );
         assert!(t.at(2_300_000_000).is_none(), "too far after the last sample");
+        assert!(t.add_odometry(&odom(2_100_000_000, 3.0, 0.4)));
+        t.forget_before(2_050_000_000);
+        assert_eq!(
+            t.len(),
+            2,
+            "the newest older sample stays to bracket later stamps"
+        );
+        assert!(t.at(2_050_000_000).is_some());
+        assert_eq!(t.newest_ns(), Some(2_100_000_000));
         // A sensor 1 m ahead of the base turning at 0.5 rad/s moves sideways at 0.5 m/s too.
         let mount = Isometry3::translation(1.0, 0.0, 0.0);
         let (v, w) = sensor_twist((Vector3::new(1.0, 0.0, 0.0), Vector3::new(0.0, 0.0, 0.5)), &mount);

@@ -3,7 +3,7 @@
 //! time from a `t` (ns, Ouster), `time` (s, Velodyne) or `offset_time` field, and the invalid
 //! (NaN) points of an organized cloud kept as no-returns along their row's direction.
 
-use super::ros::{datatype, PointCloud2, PointField};
+use crate::msg::{datatype, PointCloud2, PointField};
 use rangegp_proto::scan::{ScanPoint, FLAG_NO_RETURN, FLAG_RING_COLUMN_VALID, MAX_TIME_OFFSET_NS};
 
 /// Why a cloud cannot be read.
@@ -258,7 +258,7 @@ fn aim_row(row: &mut [ScanPoint], incl: f32, col_az: &[f64]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::replay::ros::Header;
+    use crate::msg::Header;
 
     /// An organized cloud of rows of 4 points: x, y, z (f32), ring (u16) and t (u32 ns).
     fn cloud(points: &[[f32; 3]]) -> PointCloud2 {
