@@ -2,23 +2,26 @@
 //! of seed-000 maps (and the world aggregate), on one thread — the cost behind a round trip.
 
 use super::gp::scans;
+use crate::scangen::{now_ns, to_message};
 use anyhow::Result;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
-use rangegp_proto::msg::Layer;
-use rangegp_proto::msg::Ray;
+use rangegp_client::{Client, ScanPublisher};
+use rangegp_proto::msg::{GridRequest, Layer, Ray, StatusReply};
+use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_service::config::Config;
+use rangegp_service::daemon::Daemon;
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::grid::{self, GridBox};
 use rangegp_service::map::layers::LayerModel;
 use rangegp_service::map::{query, LocalRangeMap, MapSnapshot, Window};
-use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
+use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// Options of `rangegp-bench query`.
 #[derive(Debug, Clone, clap::Args)]
@@ -67,6 +70,9 @@ pub struct QueryReport {
     pub grid_ms: f64,
     /// The same grid with every planner layer (the footprint's margin included), milliseconds.
     pub grid_all_layers_ms: f64,
+    /// The grid of every layer asked of a running daemon over loopback Zenoh (bincode) by a
+    /// `Client`, the scans fitted by the daemon's own threads: what a planner waits, milliseconds.
+    pub daemon_grid_all_layers_ms: f64,
 }
 
 fn per_item_us(repeats: usize, items: usize, mut pass: impl FnMut()) -> f64 {
@@ -131,6 +137,81 @@ fn grid_ms(
         .collect();
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
+}
+
+/// Longest wait for the benchmark's daemon (start, each scan, the fusing).
+const DAEMON_WAIT: Duration = Duration::from_secs(60);
+
+/// The grid of every layer as a planner gets it: a daemon on a loopback endpoint of its own is
+/// sent `count` scans of `preset` over iceoryx2 (one at a time, each after the last was taken),
+/// then a `Client` asks for the 100 × 100 grid at 0.1 m around the last pose `repeats` times;
+/// the median round trip, milliseconds.
+fn daemon_grid_ms(terrain: &Heightmap, preset: &ScannerPreset, count: usize, repeats: usize) -> Result<f64> {
+    let endpoint = rangegp_transport::free_loopback_endpoint()?;
+    let id = format!("bench{}", std::process::id());
+    let mut config = Config {
+        map_id: id.clone(),
+        ..Config::default()
+    };
+    config.zenoh.listen = vec![endpoint.clone()];
+    config.ingest.service_name = format!("rangegp/{id}/scans");
+    config.metrics.listen = "127.0.0.1:0".into();
+    config.checkpoint.enabled = false;
+    let _daemon = Daemon::builder(config.clone()).start()?;
+    let client = Client::builder(&config.map_id)
+        .connect([endpoint])
+        .timeout(DAEMON_WAIT)
+        .open()?;
+    client.wait_for_daemon(DAEMON_WAIT)?;
+    let mut publisher = ScanPublisher::new(&config.scan_service_name(), 1, preset.ray_count())?;
+    let wait = |what: &str, done: &dyn Fn(&StatusReply) -> bool| -> Result<()> {
+        let deadline = Instant::now() + DAEMON_WAIT;
+        loop {
+            let s = client.status()?;
+            if done(&s) {
+                return Ok(());
+            }
+            anyhow::ensure!(
+                Instant::now() < deadline,
+                "the benchmark's daemon: no {what} in time"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    };
+    // The same path as the in-process window, a second apart (4 m steps: within the daemon's
+    // speed check), ending a minute ago.
+    let path = Path::wander(7, terrain, count, 4.0, 0.3);
+    let mut rng = Pcg64::seed_from_u64(7);
+    let t0 = now_ns().saturating_sub(60_000_000_000);
+    let mut last = None;
+    for i in 0..count {
+        let pose = path.pose(terrain, i, preset.mount_height_m);
+        let rays = simulate_scan(terrain, &pose, preset, &mut rng);
+        let (header, points) = to_message(preset, &pose, &rays, t0 + i as u64 * 1_000_000_000);
+        let before = client.status()?.scans_accepted;
+        publisher.publish(header, &points)?;
+        wait("accepted scan", &|s| s.scans_accepted > before)?;
+        last = Some(pose.translation.vector);
+    }
+    wait("fused window", &|s| s.aggregate.inserts >= count as u64)?;
+    let c = last.ok_or_else(|| anyhow::anyhow!("no scans"))?;
+    let req = GridRequest {
+        version: PROTOCOL_VERSION,
+        min_m: [c.x - 5.0, c.y - 5.0],
+        max_m: [c.x + 5.0, c.y + 5.0],
+        resolution_m: 0.1,
+        layers: Layer::ALL.to_vec(),
+        robot: None,
+    };
+    let mut v: Vec<f64> = (0..repeats.max(1))
+        .map(|_| -> Result<f64> {
+            let t = Instant::now();
+            std::hint::black_box(client.grid_request(&req)?);
+            Ok(t.elapsed().as_secs_f64() * 1e3)
+        })
+        .collect::<Result<_>>()?;
+    v.sort_by(f64::total_cmp);
+    Ok(v[v.len() / 2])
 }
 
 /// Runs the query benchmark and writes `query.json`.
@@ -220,6 +301,7 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
         answered,
         grid_ms: grid_ms(&snapshot, &config, centre, &[], opts.repeats),
         grid_all_layers_ms: grid_ms(&snapshot, &config, centre, &Layer::ALL, opts.repeats),
+        daemon_grid_all_layers_ms: daemon_grid_ms(&terrain, &preset, config.window.capacity, opts.repeats)?,
     };
     std::fs::write(
         opts.out.join("query.json"),
@@ -253,5 +335,9 @@ pub fn print_query(r: &QueryReport) {
         r.grid_ms,
         r.grid_all_layers_ms,
         r.grid_all_layers_ms / r.grid_ms
+    );
+    println!(
+        "  grid 100 × 100, every layer, from a running daemon over Zenoh {:>6.1} ms",
+        r.daemon_grid_all_layers_ms
     );
 }

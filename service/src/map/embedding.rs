@@ -36,7 +36,13 @@ impl Embedding {
     /// Kernel input of the sensor-frame ray (θ, φ).
     #[inline]
     pub fn point(&self, inclination: f64, azimuth: f64) -> [f64; 3] {
-        let u = sphere::to_sphere(inclination, azimuth, 1.0);
+        self.point_of_unit(sphere::to_sphere(inclination, azimuth, 1.0))
+    }
+
+    /// Kernel input of the sensor-frame unit direction `u` (what [`Embedding::point`] gives for
+    /// its angles, without the trigonometry when the direction is at hand).
+    #[inline]
+    pub fn point_of_unit(&self, u: [f64; 3]) -> [f64; 3] {
         let r = match self.prior {
             Prior::ConstantRange { .. } => self.radius_m,
             Prior::FlatGround { .. } => self.prior.range(&nalgebra::Vector3::from(u)).min(self.radius_m),

@@ -234,22 +234,35 @@ pub fn cell_layers(
     }
     let (gx, gy) = (coef.y, coef.z);
     let m = stencil.len();
-    // Covariance of two linear functionals with weights p and q on the known cells.
-    let cov = |p: &[f64], q: &[f64]| -> f64 {
-        let mut s = 0.0;
-        for (a, &ka) in known.iter().enumerate() {
-            let pa = p[a] * sd[a];
-            if pa == 0.0 {
-                continue;
-            }
-            let row = &stencil.corr[ka * m..ka * m + m];
-            for (b, &kb) in known.iter().enumerate() {
-                s += pa * q[b] * sd[b] * row[kb];
-            }
-        }
-        s
+    let residuals: Vec<f64> = known
+        .iter()
+        .enumerate()
+        .map(|(idx, &k)| z[idx] - (coef.x + gx * stencil.uv[k].0 + gy * stencil.uv[k].1))
+        .collect();
+    let roughness = (residuals.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+    // Roughness as a linear functional of the heights near its value: weights r / (n · rms).
+    let wr: Vec<f64> = if roughness > 1e-12 {
+        residuals.iter().map(|r| r / (n as f64 * roughness)).collect()
+    } else {
+        vec![0.0; n]
     };
-    let (vxx, vyy, vxy) = (cov(&wx, &wx), cov(&wy, &wy), cov(&wx, &wy));
+    // The covariances of the gradient's two components and of the roughness, Σ pₐ σₐ Cₐᵦ σᵦ qᵦ,
+    // in one pass over the correlations (each row read once).
+    let (mut vxx, mut vyy, mut vxy, mut vrr) = (0.0, 0.0, 0.0, 0.0);
+    for (a, &ka) in known.iter().enumerate() {
+        let row = &stencil.corr[ka * m..ka * m + m];
+        let (mut cx, mut cy, mut cr) = (0.0, 0.0, 0.0);
+        for (b, &kb) in known.iter().enumerate() {
+            let c = sd[b] * row[kb];
+            cx += wx[b] * c;
+            cy += wy[b] * c;
+            cr += wr[b] * c;
+        }
+        vxx += wx[a] * sd[a] * cx;
+        vyy += wy[a] * sd[a] * cy;
+        vxy += wx[a] * sd[a] * cy;
+        vrr += wr[a] * sd[a] * cr;
+    }
     let g = gx.hypot(gy);
     let g_var = if g > 1e-12 {
         let (ux, uy) = (gx / g, gy / g);
@@ -263,19 +276,7 @@ pub fn cell_layers(
     let norm = (1.0 + g * g).sqrt();
     let normal = [-gx / norm, -gy / norm, 1.0 / norm];
     let aspect = (-gy).atan2(-gx);
-
-    let residuals: Vec<f64> = known
-        .iter()
-        .enumerate()
-        .map(|(idx, &k)| z[idx] - (coef.x + gx * stencil.uv[k].0 + gy * stencil.uv[k].1))
-        .collect();
-    let roughness = (residuals.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
-    let roughness_sd = if roughness > 1e-12 {
-        let j: Vec<f64> = residuals.iter().map(|r| r / (n as f64 * roughness)).collect();
-        cov(&j, &j).max(0.0).sqrt()
-    } else {
-        0.0
-    };
+    let roughness_sd = vrr.max(0.0).sqrt();
 
     let (mut hi, mut lo) = (0, 0);
     for idx in 1..n {

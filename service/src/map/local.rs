@@ -46,11 +46,20 @@ const MIN_INVERSE_RANGE: f64 = 1e-3;
 /// Largest angular step, radians, when sampling a vertical line for the field of view.
 const FOV_STEP_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
 
-/// Bisections of each end of the field of view on a vertical line (step / 2¹⁴: < 0.002°).
+/// Bisections of each end of the field of view on a vertical line (in height: the bracket of
+/// one angular step, at most 2°, over 2¹⁴).
 const FOV_BISECTIONS: usize = 14;
 
-/// Coarse samples of the first-crossing search down the field of view's part of a vertical line.
-const ELEVATION_SAMPLES: usize = 12;
+/// The first-crossing search down the field of view's part of a vertical line steps at least
+/// 1 / ELEVATION_SAMPLES of it ...
+const ELEVATION_SAMPLES: usize = 24;
+
+/// ... and at most 1 / ELEVATION_SAMPLES_MIN of it.
+const ELEVATION_SAMPLES_MIN: usize = 4;
+
+/// How far past the flat-ground estimate of the crossing a step of that search goes (as a
+/// fraction of the estimate: 1.5 overshoots by half).
+const TRACE_OVERSHOOT: f64 = 1.5;
 
 impl RangeTarget {
     /// The modelled value of range `r`.
@@ -336,8 +345,13 @@ impl LocalRangeMap {
 
     /// Signed gap `‖p − s‖ − μ(angles of p)`: negative in free space, positive behind the surface.
     fn gap(&self, p: &Vector3<f64>) -> Option<f64> {
-        self.look_at(p)
-            .map(|(inc, az, dist)| dist - self.mean_range(inc, az))
+        let (v, dist) = self.sensor_vector(p)?;
+        let (inc, az) = sphere::angles_of(v);
+        // The direction is v / ‖v‖: no sine or cosine of the angles just taken.
+        let u = Vector3::new(v[0] / dist, v[1] / dist, v[2] / dist);
+        let value = self.target.of(self.prior.range(&u))
+            + self.prior.amplitude(&u) * self.gp.mean_along(inc, az, [u.x, u.y, u.z]);
+        Some(dist - self.target.back(value).0)
     }
 
     /// Delta-method variance of `root` (at map point `p`) of `gap`.
@@ -361,9 +375,25 @@ impl LocalRangeMap {
 
     fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {
         let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
-        let root = root::first_crossing(gap, 0.0, span, ELEVATION_SAMPLES)?;
+        // A point `g` short of the surface along its ray lies `g · sin(depression)` above where
+        // a flat surface below would cross the line: step that far and half as far again (the
+        // refinement takes the bracket); a ray looking up says nothing of the ground below.
+        let s = self.sensor_position();
+        let rho2 = (x - s.x).powi(2) + (y - s.y).powi(2);
+        let ahead = |t: f64, g: f64| {
+            let below = s.z - (top - t);
+            if below <= 0.0 {
+                return f64::INFINITY;
+            }
+            TRACE_OVERSHOOT * -g * below / (below * below + rho2).sqrt()
+        };
+        let steps = (
+            span / ELEVATION_SAMPLES_MIN as f64,
+            span / ELEVATION_SAMPLES as f64,
+        );
+        let root = root::first_crossing_traced(gap, (0.0, span), (steps.1, steps.0), ahead)?;
         let p = Vector3::new(x, y, top - root.t);
-        let grazing = self.grazing(&p);
+        let grazing = self.grazing(&p, root.gap());
         if grazing < SHADOW_GRAZING_FRACTION {
             return None;
         }
@@ -400,8 +430,9 @@ impl LocalRangeMap {
     /// this scan saw: behind a ridge the vertical line's first crossing is where the rays start
     /// to pass over the ridge; the range jumps there (the map smooths the jump into a steep
     /// ramp), and the crossing's height is the shadow line, not the ground. Only under the
-    /// flat-ground prior (it knows the sensor height).
-    fn grazing(&self, p: &Vector3<f64>) -> f64 {
+    /// flat-ground prior (it knows the sensor height). `gap_at_p`, the gap already evaluated
+    /// at `p`, gives the mean range there, and the rate takes one more evaluation instead of two.
+    fn grazing(&self, p: &Vector3<f64>, gap_at_p: Option<f64>) -> f64 {
         let Prior::FlatGround { height_m, .. } = self.prior else {
             return f64::INFINITY;
         };
@@ -410,7 +441,10 @@ impl LocalRangeMap {
         };
         // Inclination is measured from the sensor's zenith: a smaller one looks farther out.
         let step = SHADOW_PROBE_RAD;
-        let rate = (self.mean_range(inc - step, az) - self.mean_range(inc + step, az)) / (2.0 * step);
+        let rate = match gap_at_p {
+            Some(g) => (dist - g - self.mean_range(inc + step, az)) / step,
+            None => (self.mean_range(inc - step, az) - self.mean_range(inc + step, az)) / (2.0 * step),
+        };
         let flat = (height_m / dist).clamp(-1.0, 1.0).asin();
         if rate <= 0.0 || flat <= 0.0 {
             return f64::INFINITY;
@@ -448,11 +482,13 @@ impl LocalRangeMap {
         let psi = |k: usize| psi_top - (psi_top - psi_bottom) * k as f64 / n as f64;
         let first = (0..=n).find(|&k| sees(psi(k)))?;
         let last = (first..=n).rev().find(|&k| sees(psi(k)))?;
+        // Each end bisected in height (z is monotone in ψ: no tangent per step).
+        let sees_z = |z: f64| self.sensor_vector(&Vector3::new(x, y, z)).is_some();
         let edge = |inside: f64, outside: f64| {
-            let (mut a, mut b) = (inside, outside);
+            let (mut a, mut b) = (z_at(inside), z_at(outside));
             for _ in 0..FOV_BISECTIONS {
                 let m = 0.5 * (a + b);
-                if sees(m) {
+                if sees_z(m) {
                     a = m;
                 } else {
                     b = m;
@@ -461,16 +497,15 @@ impl LocalRangeMap {
             a
         };
         let top = if first == 0 {
-            psi(0)
+            z_at(psi(0))
         } else {
             edge(psi(first), psi(first - 1))
         };
         let bottom = if last == n {
-            psi(n)
+            z_at(psi(n))
         } else {
             edge(psi(last), psi(last + 1))
         };
-        let (top, bottom) = (z_at(top), z_at(bottom));
         (top > bottom).then_some((top, top - bottom))
     }
 

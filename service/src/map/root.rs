@@ -14,6 +14,15 @@ pub struct Root {
     /// Position along the line.
     pub t: f64,
     slope: Option<f64>,
+    value: Option<f64>,
+}
+
+impl Root {
+    /// The gap at `t` when the refinement evaluated it there (the surface's own value, which a
+    /// caller need not compute again).
+    pub fn gap(&self) -> Option<f64> {
+        self.value
+    }
 }
 
 /// The first t in [t0, t1] where `gap` turns non-negative after being negative, sampled at
@@ -34,6 +43,39 @@ pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, sample
     None
 }
 
+/// The first t in [t0, t1] where `gap` turns non-negative, stepping from t0 by what the gap
+/// itself says of the distance left: `ahead(t, gap(t))` (clamped to [`min_step`, `max_step`];
+/// `max_step` after an unobserved point), then refined as [`first_crossing`] does. Where the
+/// gap measures the distance to a surface the step lands near it at once, so a long stretch of
+/// free space costs a few evaluations instead of a fixed sampling's many; `max_step` bounds what
+/// can be stepped over as a fixed sampling's spacing does.
+pub fn first_crossing_traced(
+    gap: impl Fn(f64) -> Option<f64>,
+    (t0, t1): (f64, f64),
+    (min_step, max_step): (f64, f64),
+    ahead: impl Fn(f64, f64) -> f64,
+) -> Option<Root> {
+    let mut prev: Option<(f64, f64)> = None;
+    let mut t = t0;
+    loop {
+        let step = match gap(t) {
+            Some(g) if g >= 0.0 => return prev.and_then(|p| refine(&gap, p, (t, g))),
+            Some(g) => {
+                prev = Some((t, g));
+                ahead(t, g).clamp(min_step, max_step)
+            }
+            None => {
+                prev = None;
+                max_step
+            }
+        };
+        if t >= t1 {
+            return None;
+        }
+        t = (t + step).min(t1);
+    }
+}
+
 /// Illinois refinement of a bracket (ga < 0 ≤ gb). The secant through the last two iterates
 /// is the slope at the root when they are close (superlinear convergence makes them so).
 fn refine(
@@ -52,6 +94,7 @@ fn refine(
             return Some(Root {
                 t,
                 slope: close.then(|| (g - gp) / (t - tp)),
+                value: Some(g),
             });
         }
         previous = (t, g);
@@ -74,6 +117,7 @@ fn refine(
     Some(Root {
         t: 0.5 * (ta + tb),
         slope: None,
+        value: None,
     })
 }
 
@@ -146,6 +190,7 @@ mod tests {
             Root {
                 t: 1.0,
                 slope: Some(1.0),
+                value: Some(0.0),
             },
             0.01,
             0.005,
@@ -157,6 +202,7 @@ mod tests {
             Root {
                 t: 1.0,
                 slope: Some(0.01),
+                value: Some(0.0),
             },
             0.01,
             0.005,

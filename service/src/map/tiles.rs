@@ -285,6 +285,12 @@ impl TiledGp {
         self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
     }
 
+    /// [`TiledGp::mean`] along the ray (θ, φ) whose sensor-frame unit direction `u` is at hand.
+    pub fn mean_along(&self, inclination: f64, azimuth: f64, u: [f64; 3]) -> f64 {
+        let x = self.embedding.point_of_unit(u);
+        self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
+    }
+
     /// Distance, in kernel-input metres, from direction (θ, φ) to the nearest training ray of
     /// the experts that answer there (what [`super::local::provenance_of`] grades).
     pub fn nearest_datum(&self, inclination: f64, azimuth: f64) -> f64 {
