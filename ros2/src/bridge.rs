@@ -287,7 +287,10 @@ async fn run_dds(
     );
     let readers = futures::future::select(clouds, odometry);
     let work = std::pin::pin!(futures::future::select(spinner, readers));
-    futures::future::select(work, stop).await;
+    // Only the stop signal ends this on purpose: a spinner or reader that ended is an error.
+    if let futures::future::Either::Left(_) = futures::future::select(work, stop).await {
+        tracing::error!("the ROS 2 node's spinner or a reader stopped: no more clouds or odometry");
+    }
 }
 
 /// A cloud waiting for the odometry that brackets its stamp (odometry often lags the lidar).

@@ -212,4 +212,32 @@ mod tests {
         assert!(steep.sqrt() < 0.02 && grazing.sqrt() > 0.5, "{steep} {grazing}");
         assert!(first_crossing(|t: f64| (t < 1.0).then_some(t - 2.0), 0.0, 5.0, 10).is_none());
     }
+
+    #[test]
+    fn traced_steps_take_the_first_crossing_in_few_evaluations() {
+        // An estimate of the distance left far too generous is held to the largest step: the
+        // first of the two crossings of sin(t) − 0.5 is still the one found.
+        let gap = |t: f64| Some(t.sin() - 0.5);
+        let root = first_crossing_traced(gap, (-1.0, 3.0), (0.05, 0.2), |_, g| -10.0 * g).expect("crossing");
+        assert!((root.t - std::f64::consts::FRAC_PI_6).abs() < 1e-6, "{root:?}");
+        assert!(root.gap().is_some_and(|g| g.abs() < 1e-5));
+        // A surface 3 away and an estimate that overshoots by half: bracketed at once, the
+        // secant lands on it (three evaluations, where even sampling at the smallest step
+        // would take 300).
+        let calls = std::cell::Cell::new(0);
+        let line = |t: f64| {
+            calls.set(calls.get() + 1);
+            Some(t - 3.0)
+        };
+        let root = first_crossing_traced(line, (0.0, 10.0), (0.01, 5.0), |_, g| -1.5 * g).expect("crossing");
+        assert!(
+            (root.t - 3.0).abs() < 1e-9 && calls.get() <= 4,
+            "{root:?} after {} calls",
+            calls.get()
+        );
+        // No crossing, or an unobserved stretch between free space and the surface: none.
+        assert!(first_crossing_traced(|t| Some(t - 10.0), (0.0, 5.0), (0.1, 1.0), |_, g| -g).is_none());
+        let gappy = |t: f64| (!(1.0..2.0).contains(&t)).then_some(t - 1.5);
+        assert!(first_crossing_traced(gappy, (0.0, 5.0), (0.4, 0.4), |_, g| -g).is_none());
+    }
 }
