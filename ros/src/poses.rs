@@ -143,6 +143,16 @@ impl Timeline {
     }
 }
 
+/// A mount as the command line and configuration give it: x, y, z (metres), roll, pitch, yaw
+/// (degrees, applied as ROS does: about x, then y, then z).
+pub fn mount(xyz_rpy_deg: [f64; 6]) -> Isometry3<f64> {
+    let [x, y, z, roll, pitch, yaw] = xyz_rpy_deg;
+    Isometry3::from_parts(
+        Translation3::new(x, y, z),
+        UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians()),
+    )
+}
+
 /// Most links followed from the sensor's frame up to the base in `/tf_static`.
 const MAX_STATIC_LINKS: usize = 16;
 

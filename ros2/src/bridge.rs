@@ -10,7 +10,7 @@
 //!  DDS ◄──GridMap, OccupancyGrid── grid thread (every 1 / grid.rate_hz)
 //! ```
 
-use crate::config::{BridgeConfig, ConfigError, Reliability};
+use crate::config::{topic_name, BridgeConfig, ConfigError, Reliability};
 use futures::StreamExt;
 use rangegp_client::{Client, ClientError, PublishError, ScanPublisher};
 use rangegp_proto::msg::{ErrorCode, GridReply, GridRequest};
@@ -22,7 +22,7 @@ use rangegp_ros::scan::{from_cloud, RangeModel, Skip};
 use ros2_client::dds::rustdds::DomainParticipantBuilder;
 use ros2_client::dds::{Context, Node, Publisher, Subscription};
 use ros2_client::qos::{Durability, History, Reliability as QosReliability, WhenFull};
-use ros2_client::{MessageTypeName, Name, NodeName, NodeOptions, QosProfile};
+use ros2_client::{MessageTypeName, NodeOptions, QosProfile};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender, TrySendError};
@@ -145,17 +145,7 @@ fn dds(config: &BridgeConfig) -> Result<(Readers, Writers), StartError> {
         .build()
         .map_err(|e| dds_err("participant")(e.into()))?;
     let context = Context::from_domain_participant(participant).map_err(dds_err("context"))?;
-    let name = NodeName::new("/", &ros.node_name).map_err(|_| ConfigError::Invalid {
-        field: "ros.node_name",
-        reason: "must be a valid ROS 2 node name".into(),
-    })?;
-    let mut node = context.new_node(name, NodeOptions::new())?;
-    let topic = |field: &'static str, name: &str| {
-        Name::parse(name).map_err(|_| ConfigError::Invalid {
-            field,
-            reason: "must be a valid ROS 2 topic name".into(),
-        })
-    };
+    let mut node = context.new_node(config.node_name()?, NodeOptions::new())?;
     let sensor_qos = QosProfile::subscription_default()
         .reliability(match ros.cloud_reliability {
             Reliability::BestEffort => QosReliability::BestEffort,
@@ -169,34 +159,38 @@ fn dds(config: &BridgeConfig) -> Result<(Readers, Writers), StartError> {
     let map_qos = QosProfile::publisher_default()
         .durability(Durability::TransientLocal)
         .history(History::KeepLast { depth: 1 });
-    let cloud_topic = node
-        .create_topic(
-            &topic("ros.cloud_topic", &ros.cloud_topic)?,
-            MessageTypeName::new("sensor_msgs", "PointCloud2"),
-            &sensor_qos,
+    let topic = |what, (field, name): (&'static str, &str), (package, kind), qos| {
+        node.create_topic(
+            &topic_name(field, name)?,
+            MessageTypeName::new(package, kind),
+            qos,
         )
-        .map_err(dds_err("cloud topic"))?;
-    let odom_topic = node
-        .create_topic(
-            &topic("ros.odom_topic", &ros.odom_topic)?,
-            MessageTypeName::new("nav_msgs", "Odometry"),
-            &odom_qos,
-        )
-        .map_err(dds_err("odometry topic"))?;
-    let grid_topic = node
-        .create_topic(
-            &topic("ros.grid_map_topic", &ros.grid_map_topic)?,
-            MessageTypeName::new("grid_map_msgs", "GridMap"),
-            &map_qos,
-        )
-        .map_err(dds_err("grid map topic"))?;
-    let cost_topic = node
-        .create_topic(
-            &topic("ros.costmap_topic", &ros.costmap_topic)?,
-            MessageTypeName::new("nav_msgs", "OccupancyGrid"),
-            &map_qos,
-        )
-        .map_err(dds_err("costmap topic"))?;
+        .map_err(dds_err(what))
+    };
+    let cloud_topic = topic(
+        "cloud topic",
+        ("ros.cloud_topic", &ros.cloud_topic),
+        ("sensor_msgs", "PointCloud2"),
+        &sensor_qos,
+    )?;
+    let odom_topic = topic(
+        "odometry topic",
+        ("ros.odom_topic", &ros.odom_topic),
+        ("nav_msgs", "Odometry"),
+        &odom_qos,
+    )?;
+    let grid_topic = topic(
+        "grid map topic",
+        ("ros.grid_map_topic", &ros.grid_map_topic),
+        ("grid_map_msgs", "GridMap"),
+        &map_qos,
+    )?;
+    let cost_topic = topic(
+        "costmap topic",
+        ("ros.costmap_topic", &ros.costmap_topic),
+        ("nav_msgs", "OccupancyGrid"),
+        &map_qos,
+    )?;
     let writers = Writers {
         grid_maps: node
             .create_publisher(&grid_topic, Some(map_qos.clone()))
@@ -207,10 +201,10 @@ fn dds(config: &BridgeConfig) -> Result<(Readers, Writers), StartError> {
     };
     let readers = Readers {
         clouds: node
-            .create_subscription(&cloud_topic, Some(sensor_qos.clone()))
+            .create_subscription(&cloud_topic, Some(sensor_qos))
             .map_err(dds_err("cloud reader"))?,
         odometry: node
-            .create_subscription(&odom_topic, Some(odom_qos.clone()))
+            .create_subscription(&odom_topic, Some(odom_qos))
             .map_err(dds_err("odometry reader"))?,
         node,
     };

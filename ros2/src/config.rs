@@ -1,7 +1,7 @@
 //! The bridge's configuration: TOML with defaults for every field, unknown fields refused, every
 //! value checked by [`BridgeConfig::validate`] before anything starts.
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use nalgebra::Isometry3;
 use rangegp_proto::msg::Layer;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -175,6 +175,14 @@ impl Default for GridConfig {
     }
 }
 
+/// `name` (the value of `field`) as a ROS 2 topic name.
+pub fn topic_name(field: &'static str, name: &str) -> Result<ros2_client::Name, ConfigError> {
+    ros2_client::Name::parse(name).map_err(|_| ConfigError::Invalid {
+        field,
+        reason: "must be a valid ROS 2 topic name (e.g. /points)".into(),
+    })
+}
+
 /// DDS domains ROS 2 can use (the RTPS port formula runs out above this).
 const MAX_DOMAIN_ID: u16 = 232;
 
@@ -241,13 +249,9 @@ impl BridgeConfig {
             ("ros.costmap_topic", &self.ros.costmap_topic),
         ];
         for (field, topic) in topics {
-            if ros2_client::Name::parse(topic).is_err() {
-                return bad(field, "must be a valid ROS 2 topic name (e.g. /points)");
-            }
+            topic_name(field, topic)?;
         }
-        if ros2_client::NodeName::new("/", &self.ros.node_name).is_err() {
-            return bad("ros.node_name", "must be a valid ROS 2 node name");
-        }
+        self.node_name()?;
         if !(positive(self.grid.rate_hz) && self.grid.rate_hz <= 50.0) {
             return bad("grid.rate_hz", "must be in (0, 50]");
         }
@@ -260,13 +264,17 @@ impl BridgeConfig {
         Ok(())
     }
 
+    /// The ROS 2 node name.
+    pub fn node_name(&self) -> Result<ros2_client::NodeName, ConfigError> {
+        ros2_client::NodeName::new("/", &self.ros.node_name).map_err(|_| ConfigError::Invalid {
+            field: "ros.node_name",
+            reason: "must be a valid ROS 2 node name".into(),
+        })
+    }
+
     /// The lidar's pose on the base.
     pub fn sensor_to_base(&self) -> Isometry3<f64> {
-        let [x, y, z, roll, pitch, yaw] = self.scans.sensor_to_base;
-        Isometry3::from_parts(
-            Translation3::new(x, y, z),
-            UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians()),
-        )
+        rangegp_ros::poses::mount(self.scans.sensor_to_base)
     }
 }
 

@@ -3,7 +3,7 @@
 //! that a test can `kill -9` a real daemon or a real publisher without any extra binary.
 
 use anyhow::{bail, Context, Result};
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
@@ -51,7 +51,7 @@ impl ChildProcess {
             }
             None => Command::new(exe),
         };
-        let mut child = command
+        command
             .args([
                 test_name,
                 "--exact",
@@ -59,7 +59,15 @@ impl ChildProcess {
                 "--nocapture",
                 "--test-threads=1",
             ])
-            .env(ARGS_ENV, args)
+            .env(ARGS_ENV, args);
+        Self::run(command, true)
+    }
+
+    /// Runs `command` with its stdin and stdout piped: with `marked`, only the lines it says
+    /// through [`say`] are heard (a test binary's own output is mixed in); without, every line.
+    pub fn run(mut command: Command, marked: bool) -> Result<Self> {
+        let mut child = command
+            .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -69,14 +77,25 @@ impl ChildProcess {
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
                 // libtest may have written "test <name> ... " on the same line first.
-                if let Some(at) = line.find(LINE_PREFIX) {
-                    if tx.send(line[at + LINE_PREFIX.len()..].to_owned()).is_err() {
-                        break;
-                    }
+                let heard = match line.find(LINE_PREFIX) {
+                    Some(at) if marked => &line[at + LINE_PREFIX.len()..],
+                    None if marked => continue,
+                    _ => &line[..],
+                };
+                if tx.send(heard.to_owned()).is_err() {
+                    break;
                 }
             }
         });
         Ok(Self { child, lines })
+    }
+
+    /// Writes `line` to the child's stdin.
+    pub fn tell(&mut self, line: &str) -> Result<()> {
+        let stdin = self.child.stdin.as_mut().context("child stdin")?;
+        writeln!(stdin, "{line}")?;
+        stdin.flush()?;
+        Ok(())
     }
 
     /// Waits (at most `timeout`) for the child to say a line starting with `prefix`; returns it.

@@ -18,11 +18,9 @@ use rangegp_ros2::{Bridge, BridgeConfig};
 use rangegp_sim::ScannerPreset;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{pyenv::venv_python, rms, tool_or_skip, unique_id, Harness, WAIT};
-use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::sync::mpsc;
-use std::time::Instant;
+use std::process::Command;
+use std::time::Duration;
 
 /// Clouds in the recording.
 const SCANS: usize = 8;
@@ -58,64 +56,19 @@ fn the_ros2_bridge_exchanges_clouds_and_grids_with_cyclone_dds() -> Result<()> {
     Ok(())
 }
 
-/// The Cyclone DDS peer (tests/python/ros2_peer.py) and its stdout lines.
-struct Peer {
-    process: std::process::Child,
-    lines: mpsc::Receiver<String>,
+/// The Cyclone DDS peer (tests/python/ros2_peer.py), every stdout line heard.
+fn peer(python: &Path, mcap: &Path, out: &Path, domain: u16) -> Result<ChildProcess> {
+    let mut command = Command::new(python);
+    command
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("python/ros2_peer.py"))
+        .arg(mcap)
+        .arg(out)
+        .arg(domain.to_string());
+    ChildProcess::run(command, false)
 }
 
-impl Peer {
-    fn start(python: &Path, mcap: &Path, out: &Path, domain: u16) -> Result<Self> {
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/ros2_peer.py");
-        let mut process = Command::new(python)
-            .arg(script)
-            .arg(mcap)
-            .arg(out)
-            .arg(domain.to_string())
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .context("starting the Cyclone DDS peer")?;
-        let stdout = process.stdout.take().context("peer stdout")?;
-        let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if tx.send(line).is_err() {
-                    break;
-                }
-            }
-        });
-        Ok(Self { process, lines })
-    }
-
-    /// Waits (bounded) for a line starting with `prefix`.
-    fn expect(&mut self, prefix: &str) -> Result<String> {
-        let deadline = Instant::now() + 3 * WAIT;
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now());
-            match self.lines.recv_timeout(left) {
-                Ok(line) if line.starts_with(prefix) => return Ok(line),
-                Ok(_) => {}
-                Err(_) => anyhow::bail!("the peer did not say {prefix:?} in time"),
-            }
-        }
-    }
-
-    fn say(&mut self, line: &str) -> Result<()> {
-        let stdin = self.process.stdin.as_mut().context("peer stdin")?;
-        writeln!(stdin, "{line}")?;
-        stdin.flush()?;
-        Ok(())
-    }
-}
-
-impl Drop for Peer {
-    fn drop(&mut self) {
-        let _ = self.process.kill();
-        let _ = self.process.wait();
-    }
-}
+/// Longest wait for a line of the peer (its own waits are 30 s each).
+const PEER_WAIT: Duration = Duration::from_secs(60);
 
 /// A number of the peer's JSON.
 fn num(v: &serde_json::Value) -> Result<f64> {
@@ -221,16 +174,16 @@ fn ros2_bridge_child() -> Result<()> {
     };
     let bridge = Bridge::start(config.clone())?;
     let out = std::env::temp_dir().join(format!("{}.json", unique_id("bridge")));
-    let mut peer = Peer::start(&python, &mcap, &out, config.ros.domain_id)?;
-    peer.expect("matched")?;
-    let published = peer.expect("published")?;
+    let mut peer = peer(&python, &mcap, &out, config.ros.domain_id)?;
+    peer.expect("matched", PEER_WAIT)?;
+    let published = peer.expect("published", PEER_WAIT)?;
     ensure!(published == format!("published {SCANS}"), "{published}");
     h.wait_status("every bridged scan accepted and fused", |s| {
         s.scans_accepted == SCANS as u64 && s.aggregate.inserts == SCANS as u64
     })?;
     // Every grid stamped after this instant shows the whole map.
-    peer.say(&format!("go {}", now_ns()))?;
-    peer.expect("wrote")?;
+    peer.tell(&format!("go {}", now_ns()))?;
+    peer.expect("wrote", PEER_WAIT)?;
     let stats = bridge.stats();
     bridge.stop();
     eprintln!("bridge: {stats:?}");

@@ -10,7 +10,7 @@ pub mod record;
 
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader};
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use nalgebra::Isometry3;
 use rangegp_client::{Client, ClientError, PublishError, ScanPublisher};
 use rangegp_ros::msg as ros;
 use rangegp_ros::poses::{self, Timeline};
@@ -319,16 +319,13 @@ fn pick(
 
 /// The sensor's pose on the base from `[x, y, z, roll°, pitch°, yaw°]`.
 pub fn mount(v: &[f64]) -> Result<Isometry3<f64>, ReplayError> {
-    let &[x, y, z, roll, pitch, yaw] = v else {
+    let Ok(six) = <[f64; 6]>::try_from(v) else {
         return Err(ReplayError::Option("--sensor-to-base takes 6 numbers".into()));
     };
     if !v.iter().all(|c| c.is_finite()) {
         return Err(ReplayError::Option("--sensor-to-base must be finite".into()));
     }
-    Ok(Isometry3::from_parts(
-        Translation3::new(x, y, z),
-        UnitQuaternion::from_euler_angles(roll.to_radians(), pitch.to_radians(), yaw.to_radians()),
-    ))
+    Ok(poses::mount(six))
 }
 
 /// The base's poses from the chosen source, sorted; counts them and the bad messages there.

@@ -318,9 +318,13 @@ impl LocalRangeMap {
 
     /// Mean range only (O(n)).
     fn mean_range(&self, inclination: f64, azimuth: f64) -> f64 {
-        let u = unit(inclination, azimuth);
-        let value = self.target.of(self.prior.range(&u))
-            + self.prior.amplitude(&u) * self.gp.mean(inclination, azimuth);
+        self.mean_range_along(inclination, azimuth, &unit(inclination, azimuth))
+    }
+
+    /// Mean range along the ray (θ, φ) whose sensor-frame unit direction `u` is at hand.
+    fn mean_range_along(&self, inclination: f64, azimuth: f64, u: &Vector3<f64>) -> f64 {
+        let value = self.target.of(self.prior.range(u))
+            + self.prior.amplitude(u) * self.gp.mean_along(inclination, azimuth, [u.x, u.y, u.z]);
         self.target.back(value).0
     }
 
@@ -349,9 +353,7 @@ impl LocalRangeMap {
         let (inc, az) = sphere::angles_of(v);
         // The direction is v / ‖v‖: no sine or cosine of the angles just taken.
         let u = Vector3::new(v[0] / dist, v[1] / dist, v[2] / dist);
-        let value = self.target.of(self.prior.range(&u))
-            + self.prior.amplitude(&u) * self.gp.mean_along(inc, az, [u.x, u.y, u.z]);
-        Some(dist - self.target.back(value).0)
+        Some(dist - self.mean_range_along(inc, az, &u))
     }
 
     /// Delta-method variance of `root` (at map point `p`) of `gap`.
@@ -393,12 +395,12 @@ impl LocalRangeMap {
         );
         let root = root::first_crossing_traced(gap, (0.0, span), (steps.1, steps.0), ahead)?;
         let p = Vector3::new(x, y, top - root.t);
-        let grazing = self.grazing(&p, root.gap());
+        let (inc, az, dist) = self.look_at(&p)?;
+        let grazing = self.grazing((inc, az, dist), root.gap());
         if grazing < SHADOW_GRAZING_FRACTION {
             return None;
         }
         // One range variance at the crossing serves the height's and the point's σ.
-        let (inc, az, _) = self.look_at(&p)?;
         let (_, var_r) = self.predict_range(inc, az);
         let var = root::root_variance(gap, root, var_r)?;
         let w = self.pose.rotation * unit(inc, az);
@@ -423,7 +425,8 @@ impl LocalRangeMap {
         provenance_of(self.gp.nearest_datum(inclination, azimuth), self.length_scale)
     }
 
-    /// The angle at which the rays meet the predicted surface at `p`, as a fraction of the angle
+    /// The angle at which the rays meet the predicted surface at `p` (given as its sensor-frame
+    /// inclination, azimuth and distance), as a fraction of the angle
     /// flat ground would be seen at from the same distance (infinite where it cannot be told: a
     /// surface receding slower than flat ground, or a prior that does not know the ground).
     /// Below [`SHADOW_GRAZING_FRACTION`] the crossing is the edge of a shadow rather than ground
@@ -432,11 +435,8 @@ impl LocalRangeMap {
     /// ramp), and the crossing's height is the shadow line, not the ground. Only under the
     /// flat-ground prior (it knows the sensor height). `gap_at_p`, the gap already evaluated
     /// at `p`, gives the mean range there, and the rate takes one more evaluation instead of two.
-    fn grazing(&self, p: &Vector3<f64>, gap_at_p: Option<f64>) -> f64 {
+    fn grazing(&self, (inc, az, dist): (f64, f64, f64), gap_at_p: Option<f64>) -> f64 {
         let Prior::FlatGround { height_m, .. } = self.prior else {
-            return f64::INFINITY;
-        };
-        let Some((inc, az, dist)) = self.look_at(p) else {
             return f64::INFINITY;
         };
         // Inclination is measured from the sensor's zenith: a smaller one looks farther out.
@@ -476,14 +476,14 @@ impl LocalRangeMap {
             return None;
         }
         let z_at = |psi: f64| s.z + rho * psi.tan();
-        let sees = |psi: f64| self.sensor_vector(&Vector3::new(x, y, z_at(psi))).is_some();
+        let sees_z = |z: f64| self.sensor_vector(&Vector3::new(x, y, z)).is_some();
+        let sees = |psi: f64| sees_z(z_at(psi));
         let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
         let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;
         let psi = |k: usize| psi_top - (psi_top - psi_bottom) * k as f64 / n as f64;
         let first = (0..=n).find(|&k| sees(psi(k)))?;
         let last = (first..=n).rev().find(|&k| sees(psi(k)))?;
         // Each end bisected in height (z is monotone in ψ: no tangent per step).
-        let sees_z = |z: f64| self.sensor_vector(&Vector3::new(x, y, z)).is_some();
         let edge = |inside: f64, outside: f64| {
             let (mut a, mut b) = (z_at(inside), z_at(outside));
             for _ in 0..FOV_BISECTIONS {

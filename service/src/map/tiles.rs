@@ -279,13 +279,8 @@ impl TiledGp {
         self.experts.iter().flatten().map(ExactGp::len).sum()
     }
 
-    /// Blended residual mean at (θ, φ) (O(n) per covering expert).
-    pub fn mean(&self, inclination: f64, azimuth: f64) -> f64 {
-        let x = self.embedding.point(inclination, azimuth);
-        self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
-    }
-
-    /// [`TiledGp::mean`] along the ray (θ, φ) whose sensor-frame unit direction `u` is at hand.
+    /// Blended residual mean along the ray (θ, φ), whose sensor-frame unit direction is `u`
+    /// (the caller has it: no trigonometry here); O(n) per covering expert.
     pub fn mean_along(&self, inclination: f64, azimuth: f64, u: [f64; 3]) -> f64 {
         let x = self.embedding.point_of_unit(u);
         self.blend(inclination, azimuth, |gp| (gp.mean(&x), 0.0)).0
@@ -502,7 +497,9 @@ mod tests {
         .expect("tiled");
         assert!(tiled.tiles() >= 12, "only {} tiles", tiled.tiles());
         let e = rmse(&test, |t, p| exact.mean(&sphere::to_sphere(t, p, 10.0)));
-        let t = rmse(&test, |th, p| tiled.mean(th, p));
+        let t = rmse(&test, |th, p| {
+            tiled.mean_along(th, p, sphere::to_sphere(th, p, 1.0))
+        });
         eprintln!(
             "held-out range RMSE: exact {e:.5} m, tiled {t:.5} m over {} tiles",
             tiled.tiles()
@@ -571,8 +568,9 @@ mod tests {
         )
         .expect("fit");
         assert!(gp.tiles() > 8);
-        let below = gp.mean(1.675, std::f64::consts::PI - 1e-4);
-        let above = gp.mean(1.675, -std::f64::consts::PI + 1e-4);
+        let mean = |t: f64, p: f64| gp.mean_along(t, p, sphere::to_sphere(t, p, 1.0));
+        let below = mean(1.675, std::f64::consts::PI - 1e-4);
+        let above = mean(1.675, -std::f64::consts::PI + 1e-4);
         assert!((below - above).abs() < 1e-3, "{below} vs {above}");
         assert!((below - 0.3).abs() < 0.02);
     }
