@@ -389,6 +389,11 @@ impl Client {
         &self.keys
     }
 
+    /// The Zenoh session (for the fleet queries beside this module).
+    pub(crate) fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
     fn call<Q: Serialize, R: DeserializeOwned>(&self, key: &str, req: &Q) -> Result<R, ClientError> {
         let payload = codec::encode(self.encoding, req)?;
         match self.call_raw(key, payload, self.encoding)? {

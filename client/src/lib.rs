@@ -1,6 +1,7 @@
 //! rangegp-client: what a planner or a scan driver links to talk to the rangegp daemon.
 //!
 //! - [`Client`]: typed, timed queries over Zenoh (feature `query`, on by default).
+//! - [`fleet`]: one query to every robot and site at once, fused by inverse variance.
 //! - [`ScanPublisher`]: zero-copy scan publishing over iceoryx2 (always; no Zenoh needed).
 
 #![deny(missing_docs)]
@@ -8,6 +9,8 @@
 
 #[cfg(feature = "query")]
 pub mod client;
+#[cfg(feature = "query")]
+pub mod fleet;
 pub mod publisher;
 
 #[cfg(feature = "query")]

@@ -12,7 +12,7 @@ import time
 
 import zenoh
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 
 
 def main() -> int:

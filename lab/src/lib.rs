@@ -7,6 +7,7 @@
 //! - [`scangen`]: simulated scans in the wire layout.
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
+//! - [`fleet`]: a Zenoh router with a memory storage of a site's tiles (fleet test and simulation).
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -15,6 +16,7 @@ pub mod bench;
 pub mod certs;
 pub mod demo;
 pub mod eval;
+pub mod fleet;
 pub mod load;
 pub mod plot;
 pub mod replay;

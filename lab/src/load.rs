@@ -136,6 +136,11 @@ pub struct LoadSummary {
     pub rss_series_mb: Vec<(f64, f64)>,
     /// Aggregate cells / tiles at the end.
     pub aggregate_cells_tiles: [u64; 2],
+    /// Tile messages the daemon published into its site's key space per second over the run
+    /// (0 without `[fleet] site`).
+    pub tiles_per_s: f64,
+    /// Their bytes per second, KiB (the fleet bar: at most 1 MB/s per robot).
+    pub tile_kib_per_s: f64,
 }
 
 /// [`percentile`], 0 when nothing was measured (a figure of the summary).
@@ -449,6 +454,8 @@ pub fn run(opts: &LoadOptions, log: impl Fn(&str)) -> Result<LoadSummary> {
         },
         rss_series_mb: series,
         aggregate_cells_tiles: [end_status.aggregate.cells, end_status.aggregate.tiles],
+        tiles_per_s: delta(|s| s.fleet.tiles_published) as f64 / opts.seconds,
+        tile_kib_per_s: delta(|s| s.fleet.tile_bytes_published) as f64 / opts.seconds / 1024.0,
     };
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     let file = opts.out.join("summary.json");
@@ -516,6 +523,10 @@ pub fn print(s: &LoadSummary, out: &std::path::Path) {
         s.daemon_aggregate_insert_ms[0],
         s.daemon_aggregate_insert_ms[1],
         s.daemon_aggregate_reach_m
+    );
+    println!(
+        "  fleet tiles published                       {:.1} tiles/s, {:.1} KiB/s",
+        s.tiles_per_s, s.tile_kib_per_s
     );
     let mut kinds: Vec<_> = s.rtt.iter().collect();
     kinds.sort_by_key(|(k, _)| k.as_str());

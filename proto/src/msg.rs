@@ -637,6 +637,8 @@ pub struct StatusReply {
     pub replies_dropped: u64,
     /// Resident set size of the daemon process, MiB (`None` where the OS does not say).
     pub rss_mb: Option<f64>,
+    /// The daemon's part in a fleet: tiles published (robot) or assembled (site).
+    pub fleet: crate::fleet::FleetInfo,
 }
 
 /// Published on `rangegp/<map>/events/map` each time a scan's map starts answering queries.

@@ -60,6 +60,39 @@ pub struct Config {
     pub checkpoint: CheckpointConfig,
     /// The robot the planner layers (risk, cost) judge by, when a request names none.
     pub layers: LayersConfig,
+    /// Fleets: a robot's tiles into a site's key space, or a site daemon (docs/FLEET.md).
+    pub fleet: FleetConfig,
+}
+
+/// A daemon's part in a fleet (docs/FLEET.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FleetConfig {
+    /// `robot` (a sensor; publishes its tiles when `site` is set) or `site` (no sensor: answers
+    /// for every robot's tiles under `rangegp/<map_id>/tiles/**`).
+    pub role: rangegp_proto::fleet::FleetRole,
+    /// Robot: the site whose key space its aggregate tiles are published into (`rangegp/<site>/
+    /// tiles/<map_id>/...`); empty: no fleet. A site daemon's site is its own `map_id`.
+    pub site: String,
+    /// Robot: a changed tile is published at most once per period, milliseconds.
+    pub tile_period_ms: u64,
+    /// Robot: tile bytes published per second at most, KiB; tiles beyond wait for the next period,
+    /// oldest change first.
+    pub max_kib_per_s: u64,
+    /// Site: how long the start waits for the storage's tiles, milliseconds.
+    pub storage_wait_ms: u64,
+}
+
+impl Default for FleetConfig {
+    fn default() -> Self {
+        Self {
+            role: rangegp_proto::fleet::FleetRole::Robot,
+            site: String::new(),
+            tile_period_ms: 1000,
+            max_kib_per_s: 512,
+            storage_wait_ms: 3000,
+        }
+    }
 }
 
 /// The robot model of the planner layers (docs/PROTOCOL.md "Planner layers").
@@ -360,6 +393,7 @@ impl Default for Config {
             metrics: MetricsConfig::default(),
             checkpoint: CheckpointConfig::default(),
             layers: LayersConfig::default(),
+            fleet: FleetConfig::default(),
         }
     }
 }
@@ -472,11 +506,26 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 38] = [
+        let checks: [(bool, &'static str, &str); 41] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
                 "must be a non-empty key-expression chunk (no '/', '*', '$', '?', '#')",
+            ),
+            (
+                self.fleet.site.is_empty() || MapKeys::new(&self.fleet.site).is_ok(),
+                "fleet.site",
+                "must be empty (no fleet) or a key-expression chunk like map_id",
+            ),
+            (
+                (10..=600_000).contains(&self.fleet.tile_period_ms),
+                "fleet.tile_period_ms",
+                "must be in 10..=600000",
+            ),
+            (
+                self.fleet.max_kib_per_s > 0 && self.fleet.storage_wait_ms <= 600_000,
+                "fleet.max_kib_per_s / fleet.storage_wait_ms",
+                "must be positive / at most 600000",
             ),
             (
                 service_ok,
@@ -679,6 +728,14 @@ impl Config {
     /// The validated keys of this map.
     pub fn keys(&self) -> MapKeys {
         MapKeys::new(&self.map_id).unwrap_or_else(|e| panic!("config not validated: {e}"))
+    }
+
+    /// The site this daemon's tiles go to (robot) or come from (site), when in a fleet.
+    pub fn fleet_site(&self) -> Option<MapKeys> {
+        match self.fleet.role {
+            rangegp_proto::fleet::FleetRole::Site => Some(self.keys()),
+            rangegp_proto::fleet::FleetRole::Robot => MapKeys::new(&self.fleet.site).ok(),
+        }
     }
 
     /// The iceoryx2 scan service name.

@@ -9,6 +9,7 @@
 //! - [`server`]: Zenoh queryables and the query worker pool.
 //! - [`checkpoint`]: durable, atomic, checksummed checkpoints of the aggregate.
 //! - [`exporter`]: Prometheus metrics over HTTP.
+//! - [`fleet`]: tiles into a site's key space; the site daemon's map of every robot's tiles.
 //! - [`daemon`]: starts and stops the threads of the above.
 //! - [`config`], [`metrics`]: TOML configuration, counters and latencies.
 //! - [`priority`], [`shutdown`]: background threads yield; one stop signal for all.
@@ -19,6 +20,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod daemon;
 pub mod exporter;
+pub mod fleet;
 pub mod gp;
 pub mod ingest;
 pub mod map;

@@ -43,6 +43,9 @@ pub struct DaemonState {
     pub corrections: CorrectionDesk,
     /// The robot the planner layers judge by when a request names none (`[layers]`).
     pub robot: RobotModel,
+    /// The daemon's part in a fleet, for status (the tile publisher or the site assembler
+    /// updates it).
+    pub fleet: Mutex<rangegp_proto::fleet::FleetInfo>,
 }
 
 /// A correction waiting for the aggregate thread.

@@ -38,7 +38,9 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
         .arg("-L")
         .arg(&lib)
         .arg("-lrangegp_c")
-        .arg(format!("-Wl,-rpath,{}", lib.display()))
+        // DT_RPATH, searched before LD_LIBRARY_PATH (cargo's points at target/release too, where
+        // a `cargo build` of another revision may have left an older librangegp_c.so).
+        .arg(format!("-Wl,--disable-new-dtags,-rpath,{}", lib.display()))
         .arg("-o")
         .arg(&exe)
         .output()?;

@@ -2,6 +2,7 @@
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
+use rangegp_lab::bench::fleet::{print_fleet, run_fleet, FleetBenchOptions};
 use rangegp_lab::bench::gp::{print_gp, run_gp, GpBenchOptions};
 use rangegp_lab::bench::hyper::{print_hyper, run_hyper, HyperOptions};
 use rangegp_lab::bench::query::{print_query, run_query, QueryBenchOptions};
@@ -24,6 +25,8 @@ enum Command {
     Hyper(HyperOptions),
     /// CPU time per answered item of each query kind against a full window.
     Query(QueryBenchOptions),
+    /// A site daemon's single-point latency against a robot's, behind one router with storage.
+    Fleet(FleetBenchOptions),
 }
 
 fn main() -> Result<()> {
@@ -37,6 +40,11 @@ fn main() -> Result<()> {
             let report = run_query(&opts)?;
             print_query(&report);
             println!("  written: {}", opts.out.join("query.json").display());
+        }
+        Command::Fleet(opts) => {
+            let report = run_fleet(&opts)?;
+            print_fleet(&report);
+            println!("  written: {}", opts.out.join("fleet.json").display());
         }
         Command::Hyper(opts) => {
             let report = run_hyper(&opts)?;

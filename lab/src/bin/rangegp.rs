@@ -58,8 +58,15 @@ enum Command {
     /// The daemon on embedded defaults with a simulated rover (iceoryx2) and planner (Zenoh), all
     /// in this process on loopback; writes OUT/summary.json and pictures.
     Demo(DemoOptions),
-    /// Print the daemon's counters as JSON.
-    Status(Connection),
+    /// Print the daemon's counters as JSON; `--site` prints a site daemon's robots, tiles and
+    /// storage state as a table instead.
+    Status {
+        #[command(flatten)]
+        connection: Connection,
+        /// The fleet view: robots (alive or not), their tiles and cells, and the storage.
+        #[arg(long)]
+        site: bool,
+    },
     /// Write a CA, the daemon's certificate and one per planner into DIR, as the shipped
     /// mutual-TLS configuration (deploy/zenoh-*.json5) expects them. For trials, not production.
     Certs {
@@ -504,7 +511,17 @@ fn main() -> Result<()> {
                 dir.display()
             );
         }
-        Command::Status(c) => println!("{}", serde_json::to_string_pretty(&c.open()?.status()?)?),
+        Command::Status { connection, site } => {
+            let status = connection.open()?.status()?;
+            if site {
+                print!(
+                    "{}",
+                    rangegp_lab::fleet::site_table(&status, rangegp_lab::scangen::now_ns())
+                );
+            } else {
+                println!("{}", serde_json::to_string_pretty(&status)?);
+            }
+        }
         Command::Correct {
             connection,
             transform,

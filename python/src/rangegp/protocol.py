@@ -5,7 +5,7 @@ import ctypes
 
 import numpy as np
 
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 """Version of the whole contract (scan layout and query messages)."""
 
 FLAG_NO_RETURN = 1

@@ -154,6 +154,9 @@ pub(super) fn aggregate_loop(
                 m.ledger_bytes
                     .store(kept.ledger.bytes() as u64, Ordering::Relaxed);
                 let evicted = inserted.evicted;
+                if let Some(departures) = &kept.departures {
+                    departures.push(&evicted);
+                }
                 // Out of the published map only once its successor is ready: write them first.
                 if let Some(store) = &mut kept.pages {
                     page_out(store, &evicted, m);

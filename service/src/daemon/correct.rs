@@ -25,6 +25,8 @@ pub(super) struct Kept {
     pub ledger: Ledger,
     /// Where the cells each scan replaced are announced.
     pub changes: zenoh::pubsub::Publisher<'static>,
+    /// Where tiles leaving the radius go for the site's key space (in a fleet).
+    pub departures: Option<std::sync::Arc<crate::fleet::publish::Departures>>,
 }
 
 /// The corrections the aggregate thread has applied (its maps are brought up to these).

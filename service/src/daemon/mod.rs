@@ -13,6 +13,8 @@ use crate::checkpoint::writer::Writer;
 use crate::checkpoint::PageStore;
 use crate::config::{Config, ConfigError};
 use crate::exporter::Exporter;
+use crate::fleet::assemble::{self, SiteSettings};
+use crate::fleet::publish::{self, Departures, TileSettings};
 use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, ValidationLimits};
 use crate::map::aggregate::ledger::Ledger;
@@ -29,6 +31,7 @@ use correct::Kept;
 pub use correct::{correct_aggregate, AggregateCorrection};
 use fit::{fit_loop, FitOutputs};
 use learn::learn_loop;
+use rangegp_proto::fleet::{FleetInfo, FleetRole};
 use rangegp_transport::{zenoh_config, TransportConfigError};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -112,7 +115,7 @@ impl DaemonBuilder {
             change_detection: config.aggregate.change_detection,
             ..WorldParams::default()
         };
-        let (store, restored) = if config.aggregate.enabled {
+        let (store, restored) = if config.aggregate.enabled && config.fleet.role == FleetRole::Robot {
             crate::checkpoint::resume(
                 config.checkpoint_dir().as_deref(),
                 config.checkpoint.keep,
@@ -148,6 +151,11 @@ impl DaemonBuilder {
                 waiting: config.aggregate.enabled.then(Mutex::default),
             },
             robot: config.layers.robot(),
+            fleet: Mutex::new(FleetInfo {
+                role: config.fleet.role,
+                site: config.fleet_site().map(|k| k.map_id().to_owned()),
+                ..FleetInfo::default()
+            }),
         });
         // From here on an early return drops `daemon`, which stops what has started.
         let mut daemon = Daemon {
@@ -160,8 +168,13 @@ impl DaemonBuilder {
             aggregator: None,
             checkpointer: None,
             exporter: None,
+            fleet: None,
             session: Some(session.clone()),
         };
+        if config.fleet.role == FleetRole::Site {
+            daemon.start_site(&config, world_params)?;
+            return Ok(daemon);
+        }
         let shutdown = daemon.shutdown.clone();
         let state = Arc::clone(&daemon.state);
 
@@ -182,6 +195,7 @@ impl DaemonBuilder {
             None
         };
 
+        let mut tiles = None;
         let aggregate_feed = if config.aggregate.enabled {
             let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
@@ -212,10 +226,16 @@ impl DaemonBuilder {
                     action: "declare the change publisher",
                     source,
                 })?;
+            let departures = config.fleet_site().map(|site| {
+                let departures = Arc::new(Departures::default());
+                tiles = Some((site, Arc::clone(&departures)));
+                departures
+            });
             let kept = Kept {
                 pages,
                 ledger: Ledger::new(config.aggregate.ledger_mib << 20),
                 changes,
+                departures,
             };
             daemon.aggregator = Some(spawn("rangegp-aggregate", move || {
                 aggregate_loop(&rx, &state, start, radius_m, budget, kept, &shutdown);
@@ -268,21 +288,27 @@ impl DaemonBuilder {
             })?);
         }
 
+        if let Some((site, departures)) = tiles {
+            let settings = TileSettings {
+                site,
+                period: Duration::from_millis(config.fleet.tile_period_ms),
+                max_bytes_per_s: config.fleet.max_kib_per_s << 10,
+            };
+            let (session, state, shutdown) = (session.clone(), Arc::clone(&state), shutdown.clone());
+            daemon.fleet = Some(Fleet {
+                thread: spawn("rangegp-tiles", move || {
+                    publish::publish_loop(&session, &state, &settings, &departures, &shutdown);
+                })?,
+                subscriber: None,
+            });
+        }
         daemon.server = Some(QueryServer::start(
             &session,
             Arc::clone(&state),
             config.query.threads,
             64,
         )?);
-        daemon.exporter = match config.metrics.listen.as_str() {
-            "" => None,
-            listen => Exporter::start(listen, Arc::clone(&state))
-                .inspect_err(|e| {
-                    let e: &dyn std::error::Error = e;
-                    warn!(error = e, "running without prometheus metrics");
-                })
-                .ok(),
-        };
+        daemon.exporter = exporter(&config, Arc::clone(&state));
         daemon.ingest = Some(spawn_ingest(
             IngestSettings {
                 service_name: config.scan_service_name(),
@@ -335,6 +361,19 @@ fn session_config(config: &Config) -> Result<zenoh::Config, StartError> {
     Ok(zconf)
 }
 
+/// The Prometheus exporter `[metrics]` asks for; a failure to start it is logged, not fatal.
+fn exporter(config: &Config, state: Arc<DaemonState>) -> Option<Exporter> {
+    match config.metrics.listen.as_str() {
+        "" => None,
+        listen => Exporter::start(listen, state)
+            .inspect_err(|e| {
+                let e: &dyn std::error::Error = e;
+                warn!(error = e, "running without prometheus metrics");
+            })
+            .ok(),
+    }
+}
+
 /// Spawns a named daemon thread.
 fn spawn(thread: &'static str, body: impl FnOnce() + Send + 'static) -> Result<JoinHandle<()>, StartError> {
     std::thread::Builder::new()
@@ -354,8 +393,15 @@ pub struct Daemon {
     aggregator: Option<JoinHandle<()>>,
     checkpointer: Option<(Arc<Mutex<Writer>>, JoinHandle<()>)>,
     exporter: Option<Exporter>,
+    fleet: Option<Fleet>,
     /// `None` once stopped.
     session: Option<zenoh::Session>,
+}
+
+/// The fleet's thread: a robot's tile publisher, or a site's assembler with its subscription.
+struct Fleet {
+    thread: JoinHandle<()>,
+    subscriber: Option<zenoh::pubsub::Subscriber<()>>,
 }
 
 impl std::fmt::Debug for Daemon {
@@ -367,6 +413,51 @@ impl std::fmt::Debug for Daemon {
 }
 
 impl Daemon {
+    /// Starts the site role on a daemon whose state is made: the subscription to every robot's
+    /// tiles, the storage's tiles (waiting up to `fleet.storage_wait_ms` for a storage), the
+    /// assembler of live tiles, the query server and the exporter. No
+    /// scan intake, fitting or checkpoints: the storage is the site's memory.
+    fn start_site(&mut self, config: &Config, params: WorldParams) -> Result<(), StartError> {
+        let (Some(session), Some(site)) = (self.session.clone(), config.fleet_site()) else {
+            return Ok(());
+        };
+        let state = Arc::clone(&self.state);
+        let (tx, rx) = std::sync::mpsc::sync_channel(assemble::TILE_QUEUE);
+        let subscriber = assemble::subscribe(&session, &site, tx, Arc::clone(&state)).map_err(|source| {
+            StartError::Zenoh {
+                action: "subscribe to the site's tiles",
+                source,
+            }
+        })?;
+        let settings = SiteSettings {
+            site,
+            storage_wait: Duration::from_millis(config.fleet.storage_wait_ms),
+            params,
+        };
+        let shutdown = self.shutdown.clone();
+        // Everything stored first: once its queryables are declared, the site answers all of it.
+        let site_map = assemble::recover(&session, &state, &settings, &shutdown);
+        let thread = {
+            let (session, state) = (session.clone(), Arc::clone(&state));
+            spawn("rangegp-site", move || {
+                assemble::assemble_loop(&session, &state, site_map, &settings, &rx, &shutdown);
+            })?
+        };
+        self.fleet = Some(Fleet {
+            thread,
+            subscriber: Some(subscriber),
+        });
+        self.server = Some(QueryServer::start(
+            &session,
+            Arc::clone(&state),
+            config.query.threads,
+            64,
+        )?);
+        self.exporter = exporter(config, state);
+        info!(site = config.map_id, "rangegpd started as a site daemon");
+        Ok(())
+    }
+
     /// A builder for a daemon with `config`.
     pub fn builder(config: Config) -> DaemonBuilder {
         DaemonBuilder { config, zenoh: None }
@@ -407,6 +498,13 @@ impl Daemon {
             ("fit", self.fitter.take()),
             ("hyperparameter", self.learner.take()),
             ("aggregate", self.aggregator.take()),
+            (
+                "fleet",
+                self.fleet.take().map(|f| {
+                    drop(f.subscriber);
+                    f.thread
+                }),
+            ),
         ] {
             if thread.is_some_and(|t| t.join().is_err()) {
                 warn!(thread = name, "a daemon thread panicked");

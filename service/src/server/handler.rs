@@ -388,5 +388,10 @@ fn status(state: &DaemonState) -> StatusReply {
         queries_expired: m.queries_expired.load(Relaxed),
         replies_dropped: m.replies_dropped.load(Relaxed),
         rss_mb: crate::metrics::rss_mb(),
+        fleet: state
+            .fleet
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone(),
     }
 }

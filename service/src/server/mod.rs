@@ -93,13 +93,14 @@ impl QueryServer {
         for (key, endpoint) in endpoints {
             let tx = sender.clone();
             let st = Arc::clone(&state);
+            let reply_key = key.clone();
             let q = session
                 .declare_queryable(&key)
                 .complete(true)
                 .callback(move |query| {
                     if inline(endpoint, &query) {
                         let (encoding, outcome) = serve(endpoint, &query, &st);
-                        return reply::put(&query, encoding, outcome);
+                        return reply::put(&query, &reply_key, encoding, outcome);
                     }
                     match tx.try_send((endpoint, query, Instant::now())) {
                         Ok(()) => {}
@@ -109,7 +110,7 @@ impl QueryServer {
                             let encoding = request_encoding(&query);
                             let outcome =
                                 error_reply(encoding, ErrorCode::Overloaded, "query queue full, retry later");
-                            reply::put(&query, encoding, outcome);
+                            reply::put(&query, &reply_key, encoding, outcome);
                         }
                     }
                 })
@@ -121,16 +122,17 @@ impl QueryServer {
             queryables.push(q);
         }
         let echo = state.keys.echo();
+        let echo_key = echo.clone();
         queryables.push(
             session
                 .declare_queryable(&echo)
                 .complete(true)
-                .callback(|query| {
+                .callback(move |query| {
                     let payload = query
                         .payload()
                         .map(|p| p.to_bytes().into_owned())
                         .unwrap_or_default();
-                    if let Err(e) = query.reply(query.key_expr().clone(), payload).wait() {
+                    if let Err(e) = query.reply(echo_key.as_str(), payload).wait() {
                         warn!(error = %e, "echo reply failed");
                     }
                 })
@@ -191,7 +193,12 @@ fn worker(receiver: &Mutex<Receiver<Job>>, state: &DaemonState, replies: &ReplyS
         } else {
             serve(endpoint, &query, state)
         };
-        replies.send(query, encoding, outcome);
+        let key = match endpoint {
+            Endpoint::Query(k) => state.keys.query(k),
+            Endpoint::Status => state.keys.status(),
+            Endpoint::Corrections => state.keys.corrections(),
+        };
+        replies.send(query, key, encoding, outcome);
     }
 }
 

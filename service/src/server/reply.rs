@@ -50,7 +50,7 @@ impl ReplySender {
 
     /// Sends `outcome` for `query` in `encoding` without blocking the caller; drops it (counted)
     /// when [`MAX_IN_FLIGHT`] replies are already under way or no thread can be started.
-    pub fn send(&self, query: Query, encoding: Encoding, outcome: Outcome) {
+    pub fn send(&self, query: Query, key: String, encoding: Encoding, outcome: Outcome) {
         let taken = self
             .in_flight
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
@@ -65,7 +65,7 @@ impl ReplySender {
             .name("rangegp-reply".into())
             .spawn(move || {
                 let _slot = slot;
-                put(&query, encoding, outcome);
+                put(&query, &key, encoding, outcome);
             });
         if let Err(e) = spawned {
             self.drop_reply(&e.to_string());
@@ -93,13 +93,11 @@ impl Drop for Slot {
     }
 }
 
-/// Hands `outcome` to Zenoh (blocking while the client's transport is congested).
-pub fn put(query: &Query, encoding: Encoding, outcome: Outcome) {
+/// Hands `outcome` to Zenoh on the daemon's own `key` (blocking while the client's transport is
+/// congested): a query over many maps (`rangegp/*/query/...`) learns which map answered.
+pub fn put(query: &Query, key: &str, encoding: Encoding, outcome: Outcome) {
     let result = match outcome {
-        Outcome::Answer(bytes) => query
-            .reply(query.key_expr().clone(), bytes)
-            .encoding(zenoh_encoding(encoding))
-            .wait(),
+        Outcome::Answer(bytes) => query.reply(key, bytes).encoding(zenoh_encoding(encoding)).wait(),
         Outcome::Error(bytes) => query.reply_err(bytes).encoding(zenoh_encoding(encoding)).wait(),
     };
     if let Err(e) = result {

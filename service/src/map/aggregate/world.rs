@@ -23,6 +23,9 @@ use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::sync::Arc;
 
+/// A tile's own cells by (column, row) index: what a site map takes in per tile.
+pub type TileCells = Vec<((i32, i32), Cell)>;
+
 /// Settings of the world aggregate.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct WorldParams {
@@ -842,6 +845,45 @@ impl WorldAggregate {
     /// The fused cells, by index.
     pub fn cells(&self) -> &HashMap<(i32, i32), Cell> {
         &self.cells
+    }
+
+    /// The fitted tiles' keys (every cell's own tile is fitted).
+    pub fn tile_keys(&self) -> impl Iterator<Item = (i32, i32)> + '_ {
+        self.tiles.keys().copied()
+    }
+
+    /// The cells tile `key` owns, sorted by index.
+    pub fn tile_cells(&self, key: (i32, i32)) -> TileCells {
+        let n = self.params.tile_cells;
+        let mut cells = Vec::new();
+        for i in key.0 * n..(key.0 + 1) * n {
+            for j in key.1 * n..(key.1 + 1) * n {
+                if let Some(&c) = self.cells.get(&(i, j)) {
+                    cells.push(((i, j), c));
+                }
+            }
+        }
+        cells
+    }
+
+    /// Replaces the cells of each named tile by the given ones (an empty list empties it) and
+    /// refits every tile whose grown box they fall in: how a site map takes in tiles assembled
+    /// from robots. A cell given for a tile other than its own is misuse (panics). On a failed
+    /// refit the cells are replaced and the old fits kept, as for an insert.
+    pub fn replace_tiles(&mut self, tiles: &BTreeMap<(i32, i32), TileCells>) -> Result<(), AggregateError> {
+        let mut dirty = BTreeSet::new();
+        for (&key, cells) in tiles {
+            for (c, _) in self.tile_cells(key) {
+                self.cells.remove(&c);
+            }
+            for &(c, cell) in cells {
+                assert_eq!(self.tile_of(c), key, "cell {c:?} given for tile {key:?}");
+                self.cells.insert(c, cell);
+            }
+            dirty.extend((-1..=1).flat_map(|di| (-1..=1).map(move |dj| (key.0 + di, key.1 + dj))));
+        }
+        self.inserts += 1;
+        self.refit(dirty)
     }
 
     fn centre(&self, (i, j): (i32, i32)) -> (f64, f64) {

@@ -1,0 +1,277 @@
+//! The site map: every robot's latest tiles, fused cell by cell by inverse variance, held as a
+//! world aggregate so that a site answers with the same code (and the same numbers) as a robot.
+
+use crate::map::aggregate::world::{Cell, TileCells, WorldAggregate, WorldParams};
+use crate::map::aggregate::AggregateError;
+use rangegp_proto::fleet::{RobotTiles, TileCell, TileUpdate};
+use rangegp_proto::keys::MapKeys;
+use rangegp_proto::PROTOCOL_VERSION;
+use std::collections::{BTreeMap, BTreeSet};
+use thiserror::Error;
+
+/// Why a tile update was not taken.
+#[derive(Debug, Error, PartialEq)]
+pub enum TileRefusal {
+    /// Another protocol version.
+    #[error("tile of protocol version {0}, this site speaks {PROTOCOL_VERSION}")]
+    Version(u32),
+    /// Another cell or tile size than the site's.
+    #[error("tile geometry {cell_m} m × {tile_cells} cells differs from the site's")]
+    Geometry {
+        /// Its cell side, metres.
+        cell_m: f64,
+        /// Its tile side, cells.
+        tile_cells: i32,
+    },
+    /// The robot id is not a valid map id.
+    #[error("robot id {0:?} is not a valid map id")]
+    Robot(String),
+    /// A cell lies outside the tile, repeats, or holds a non-finite height or a non-positive
+    /// variance.
+    #[error("tile ({0}, {1}) holds a cell outside it, twice, or with an invalid height or variance")]
+    Cell(i32, i32),
+    /// The site holds a newer version of this tile.
+    #[error("an older version of a tile the site holds")]
+    Stale,
+}
+
+/// What one robot said of one tile, as kept.
+#[derive(Debug, Clone, PartialEq)]
+struct Held {
+    update: TileUpdate,
+}
+
+/// Every robot's latest tiles and the aggregate fused from them.
+#[derive(Debug, Clone)]
+pub struct SiteMap {
+    params: WorldParams,
+    robots: BTreeMap<String, BTreeMap<(i32, i32), Held>>,
+    world: WorldAggregate,
+}
+
+impl SiteMap {
+    /// An empty site map with the robots' aggregate geometry.
+    pub fn new(params: WorldParams) -> Self {
+        Self {
+            params,
+            robots: BTreeMap::new(),
+            world: WorldAggregate::new(params),
+        }
+    }
+
+    /// The fused aggregate queries are answered from.
+    pub fn world(&self) -> &WorldAggregate {
+        &self.world
+    }
+
+    /// Checks `update` against the site's geometry and what it holds.
+    pub fn check(&self, update: &TileUpdate) -> Result<(), TileRefusal> {
+        if update.version != PROTOCOL_VERSION {
+            return Err(TileRefusal::Version(update.version));
+        }
+        if update.cell_m != self.params.cell_m || update.tile_cells != self.params.tile_cells {
+            return Err(TileRefusal::Geometry {
+                cell_m: update.cell_m,
+                tile_cells: update.tile_cells,
+            });
+        }
+        MapKeys::new(&update.robot).map_err(|_| TileRefusal::Robot(update.robot.clone()))?;
+        let key = (update.tile_column, update.tile_row);
+        let n = self.params.tile_cells;
+        let mut seen = BTreeSet::new();
+        for c in &update.cells {
+            let inside = (c.column.div_euclid(n), c.row.div_euclid(n)) == key;
+            let valid = c.z_m.is_finite() && c.var_m2.is_finite() && c.var_m2 > 0.0;
+            if !inside || !valid || !seen.insert((c.column, c.row)) {
+                return Err(TileRefusal::Cell(key.0, key.1));
+            }
+        }
+        let held = self.robots.get(&update.robot).and_then(|t| t.get(&key));
+        if held.is_some_and(|h| !update.newer_than(&h.update)) {
+            return Err(TileRefusal::Stale);
+        }
+        Ok(())
+    }
+
+    /// Takes in every update that passes [`Self::check`] (in order; a later one of the same tile
+    /// supersedes an earlier), refuses the rest with their reasons, and refits the tiles they
+    /// changed once. On a failed refit the updates are held and the aggregate keeps its old fits
+    /// where it could not refit.
+    pub fn offer(
+        &mut self,
+        updates: Vec<TileUpdate>,
+    ) -> Result<Vec<TileRefusal>, (AggregateError, Vec<TileRefusal>)> {
+        let mut refused = Vec::new();
+        let mut touched = BTreeSet::new();
+        for update in updates {
+            if let Err(why) = self.check(&update) {
+                refused.push(why);
+                continue;
+            }
+            let key = (update.tile_column, update.tile_row);
+            touched.insert(key);
+            self.robots
+                .entry(update.robot.clone())
+                .or_default()
+                .insert(key, Held { update });
+        }
+        let fused: BTreeMap<(i32, i32), TileCells> = touched
+            .into_iter()
+            .map(|key| (key, self.fused_tile(key)))
+            .collect();
+        if fused.is_empty() {
+            return Ok(refused);
+        }
+        match self.world.replace_tiles(&fused) {
+            Ok(()) => Ok(refused),
+            Err(e) => Err((e, refused)),
+        }
+    }
+
+    /// Tile `key`'s cells fused across robots (in robot-id order, so the sums are the same on
+    /// every site): precision-weighted heights, summed precisions and scans.
+    fn fused_tile(&self, key: (i32, i32)) -> TileCells {
+        let mut sums: BTreeMap<(i32, i32), (f64, f64, u32)> = BTreeMap::new();
+        for tiles in self.robots.values() {
+            let Some(held) = tiles.get(&key) else { continue };
+            for c in &held.update.cells {
+                let s = sums.entry((c.column, c.row)).or_insert((0.0, 0.0, 0));
+                s.0 += 1.0 / c.var_m2;
+                s.1 += c.z_m / c.var_m2;
+                s.2 = s.2.saturating_add(c.scans);
+            }
+        }
+        sums.into_iter()
+            .map(|(c, (precision, weighted, scans))| {
+                let cell = if precision.is_finite() && precision > 0.0 {
+                    Cell {
+                        z: weighted / precision,
+                        var: 1.0 / precision,
+                        scans,
+                    }
+                } else {
+                    Cell {
+                        z: weighted,
+                        var: 0.0,
+                        scans,
+                    }
+                };
+                (c, cell)
+            })
+            .filter(|(_, cell)| cell.var > 0.0 && cell.z.is_finite())
+            .collect()
+    }
+
+    /// The robots whose cells make the answer at map (x, y): each robot's own cell there.
+    pub fn sources(&self, x: f64, y: f64) -> Vec<(String, TileCell)> {
+        let (cell_m, n) = (self.params.cell_m, self.params.tile_cells);
+        let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
+        let key = (c.0.div_euclid(n), c.1.div_euclid(n));
+        self.robots
+            .iter()
+            .filter_map(|(robot, tiles)| {
+                let cell = tiles
+                    .get(&key)?
+                    .update
+                    .cells
+                    .iter()
+                    .find(|t| (t.column, t.row) == c)?;
+                Some((robot.clone(), *cell))
+            })
+            .collect()
+    }
+
+    /// Per robot: tiles and cells held, and the newest scan they reflect (`alive` false: the
+    /// caller knows liveliness).
+    pub fn robots(&self) -> Vec<RobotTiles> {
+        self.robots
+            .iter()
+            .map(|(robot, tiles)| RobotTiles {
+                robot: robot.clone(),
+                tiles: tiles.len() as u64,
+                cells: tiles.values().map(|h| h.update.cells.len() as u64).sum(),
+                newest_scan_ns: tiles.values().map(|h| h.update.newest_scan_ns).max().unwrap_or(0),
+                alive: false,
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::aggregate::Aggregate;
+
+    fn update(robot: &str, published_ns: u64, cells: &[(i32, i32, f64, f64)]) -> TileUpdate {
+        let p = WorldParams::default();
+        TileUpdate {
+            version: PROTOCOL_VERSION,
+            robot: robot.into(),
+            tile_column: 0,
+            tile_row: 0,
+            cell_m: p.cell_m,
+            tile_cells: p.tile_cells,
+            revision: 1,
+            published_ns,
+            newest_scan_ns: published_ns,
+            cells: cells
+                .iter()
+                .map(|&(column, row, z_m, var_m2)| TileCell {
+                    column,
+                    row,
+                    z_m,
+                    var_m2,
+                    scans: 1,
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn overlapping_robots_fuse_by_inverse_variance_and_the_latest_tile_wins() {
+        let mut site = SiteMap::new(WorldParams::default());
+        let refused = site
+            .offer(vec![
+                update("a", 1, &[(1, 1, 0.10, 1e-4), (2, 1, 0.0, 1e-4)]),
+                update("b", 1, &[(1, 1, 0.20, 3e-4)]),
+            ])
+            .expect("fits");
+        assert!(refused.is_empty());
+        let cell = site.world().cells()[&(1, 1)];
+        assert!((cell.var - 0.75e-4).abs() < 1e-15);
+        assert!((cell.z - (0.10 / 1e-4 + 0.20 / 3e-4) * 0.75e-4).abs() < 1e-12);
+        assert_eq!(site.sources(0.3, 0.3).len(), 2);
+        assert!(site.world().elevation(0.3, 0.3).is_some());
+        // A newer tile from a replaces its cells; an older one is refused.
+        let refused = site
+            .offer(vec![update("a", 2, &[(2, 1, 0.05, 1e-4)]), update("a", 1, &[])])
+            .expect("fits");
+        assert_eq!(refused, vec![TileRefusal::Stale]);
+        assert_eq!(site.world().cells()[&(1, 1)].z, 0.20);
+        assert_eq!(site.world().cells()[&(2, 1)].z, 0.05);
+        assert_eq!(site.robots()[0].cells, 1);
+    }
+
+    #[test]
+    fn bad_tiles_are_refused_with_their_reason() {
+        let site = SiteMap::new(WorldParams::default());
+        let mut t = update("a", 1, &[(1, 1, 0.1, 1e-4)]);
+        t.version = PROTOCOL_VERSION - 1;
+        assert!(matches!(site.check(&t), Err(TileRefusal::Version(_))));
+        let mut t = update("a", 1, &[(1, 1, 0.1, 1e-4)]);
+        t.cell_m = 0.5;
+        assert!(matches!(site.check(&t), Err(TileRefusal::Geometry { .. })));
+        for bad in [
+            update("a", 1, &[(11, 1, 0.1, 1e-4)]),
+            update("a", 1, &[(1, 1, f64::NAN, 1e-4)]),
+            update("a", 1, &[(1, 1, 0.1, 0.0)]),
+            update("a", 1, &[(1, 1, 0.1, 1e-4), (1, 1, 0.2, 1e-4)]),
+        ] {
+            assert_eq!(site.check(&bad), Err(TileRefusal::Cell(0, 0)));
+        }
+        assert!(matches!(
+            site.check(&update("a/b", 1, &[])),
+            Err(TileRefusal::Robot(_))
+        ));
+    }
+}

@@ -1,0 +1,302 @@
+//! Fleets over real transports: a Zenoh router with a memory storage (in this process), three
+//! robot daemons and a site daemon (child processes, Zenoh clients of the router on loopback,
+//! scouting off). Robots drive three parallel lines 15 m apart over one cratered world; their
+//! aggregate tiles go through the router into the storage and the site.
+//!
+//! - The site answers exactly (1e-9) what a site map built from the stored tiles answers, and a
+//!   point only robot 2 saw exactly what robot 2's stored tiles alone answer.
+//! - A fleet query (`rangegp/*`) hears every robot, and fuses by inverse variance.
+//! - Robot 2 killed (SIGKILL): the site still answers its ground, and says it is not alive.
+//! - The site killed and restarted: it answers the same values, from the storage alone.
+
+use anyhow::{ensure, Context, Result};
+use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::fleet::{site_table, StorageRouter};
+use rangegp_lab::scangen::now_ns;
+use rangegp_proto::codec::{decode, Encoding};
+use rangegp_proto::fleet::{parse_tile_key, FleetRole, TileUpdate};
+use rangegp_proto::keys::MapKeys;
+use rangegp_proto::msg::Source;
+use rangegp_service::config::Config;
+use rangegp_service::daemon::Daemon;
+use rangegp_service::fleet::site_map::SiteMap;
+use rangegp_service::map::aggregate::world::WorldParams;
+use rangegp_service::map::{query, MapSnapshot};
+use rangegp_sim::path::Path;
+use rangegp_tests::child::{self, ChildProcess};
+use rangegp_tests::{unique_id, world, WAIT};
+use rangegp_transport::free_loopback_endpoint;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Child role: a daemon running the configuration file named in its arguments until killed.
+#[test]
+#[ignore = "child process of the fleet test"]
+fn child_daemon() -> Result<()> {
+    let Some(path) = child::args() else { return Ok(()) };
+    let config = Config::load(std::path::Path::new(&path))?;
+    let _daemon = Daemon::builder(config).start()?;
+    child::say("ready");
+    loop {
+        std::thread::sleep(Duration::from_secs(3600));
+    }
+}
+
+/// Writes `config` to a file of its own and starts a child daemon on it.
+fn spawn_daemon(config: &Config) -> Result<ChildProcess> {
+    let path = std::env::temp_dir().join(format!("{}.toml", unique_id("fleet")));
+    std::fs::write(&path, toml::to_string(config)?)?;
+    let mut child = ChildProcess::spawn("child_daemon", &path.display().to_string())?;
+    child.expect("ready", WAIT)?;
+    Ok(child)
+}
+
+/// A daemon configuration: a Zenoh client of the router, nothing on disk, no metrics port.
+fn config(map_id: &str, router: &str) -> Config {
+    let mut c = Config {
+        map_id: map_id.into(),
+        ..Config::default()
+    };
+    c.zenoh.mode = "client".into();
+    c.zenoh.listen = Vec::new();
+    c.zenoh.connect = vec![router.into()];
+    c.checkpoint.enabled = false;
+    c.metrics.listen = String::new();
+    c
+}
+
+fn client(map_id: &str, router: &str) -> Result<Client> {
+    let client = Client::builder(map_id).connect([router]).timeout(WAIT).open()?;
+    client.wait_for_daemon(WAIT)?;
+    Ok(client)
+}
+
+/// Polls `probe` until it returns `Some` (bounded by [`WAIT`]).
+fn wait_for<T>(what: &str, mut probe: impl FnMut() -> Result<Option<T>>) -> Result<T> {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        if let Some(v) = probe()? {
+            return Ok(v);
+        }
+        ensure!(Instant::now() < deadline, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The stored tiles, decoded (keys checked).
+fn stored(router: &StorageRouter, site: &MapKeys) -> Result<Vec<TileUpdate>> {
+    router
+        .stored(site, WAIT)?
+        .into_iter()
+        .map(|(key, bytes)| {
+            let update: TileUpdate = decode(Encoding::Bincode, &bytes)?;
+            ensure!(
+                parse_tile_key(site, &key)
+                    == Some((update.robot.clone(), (update.tile_column, update.tile_row))),
+                "stored tile {key} names another robot or tile"
+            );
+            Ok(update)
+        })
+        .collect()
+}
+
+/// What a site map of `tiles` answers at `points` (z, variance), through the daemon's query code.
+fn expected(tiles: Vec<TileUpdate>, points: &[[f64; 2]]) -> Result<Vec<Option<(f64, f64)>>> {
+    let mut site = SiteMap::new(WorldParams::default());
+    let refused = site.offer(tiles).map_err(|(e, _)| e)?;
+    ensure!(refused.is_empty(), "stored tiles refused: {refused:?}");
+    let snapshot = MapSnapshot::new(Vec::new(), Some(Arc::new(site.world().clone())))
+        .with_max_sigma(Config::default().query.max_sigma_m);
+    Ok(points
+        .iter()
+        .map(|p| {
+            let e = query::elevation(&snapshot, p[0], p[1]);
+            e.z_m.zip(e.z_var_m2)
+        })
+        .collect())
+}
+
+/// The site's answers at `points` equal `want` to 1e-9 (value and variance; both absent alike).
+fn answers_equal(site: &Client, points: &[[f64; 2]], want: &[Option<(f64, f64)>]) -> Result<bool> {
+    let got = site.elevation(points)?;
+    Ok(got
+        .iter()
+        .zip(want)
+        .all(|(g, w)| match (g.z_m.zip(g.z_var_m2), w) {
+            (Some((z, v)), Some((wz, wv))) => (z - wz).abs() <= 1e-9 && (v - wv).abs() <= 1e-9,
+            (None, None) => true,
+            _ => false,
+        }))
+}
+
+#[test]
+fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
+    let endpoint = free_loopback_endpoint()?;
+    let site_id = unique_id("site");
+    let site_keys = MapKeys::new(&site_id)?;
+    let router = StorageRouter::start(&endpoint, &site_keys, WAIT)?;
+
+    let mut site_config = config(&site_id, &endpoint);
+    site_config.fleet.role = FleetRole::Site;
+    let mut site_daemon = spawn_daemon(&site_config)?;
+    let site = client(&site_id, &endpoint)?;
+
+    // Three robots on parallel lines 15 m apart (y = −15, 0, 15), heading +x, on one world.
+    let mut robots = Vec::new();
+    let ids: Vec<String> = (1..=3).map(|k| unique_id(&format!("robot{k}"))).collect();
+    for id in &ids {
+        let mut c = config(id, &endpoint);
+        c.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
+        c.fleet.site = site_id.clone();
+        c.fleet.tile_period_ms = 100;
+        let child = spawn_daemon(&c)?;
+        robots.push((c, child, client(id, &endpoint)?));
+    }
+    let mut w = world(11, 6);
+    for (k, (c, _, robot)) in robots.iter().enumerate() {
+        let y = -15.0 + 15.0 * k as f64;
+        w.path = Path {
+            waypoints: (0..6).map(|i| [-12.0 + i as f64, y, 0.0]).collect(),
+        };
+        let mut publisher = ScanPublisher::new(&c.scan_service_name(), 1, 4096)?;
+        for i in 0..6 {
+            let scan = w.scan(i, now_ns());
+            let before = robot.status()?.aggregate.inserts;
+            publisher.publish(scan.header, &scan.points)?;
+            wait_for("the scan fused", || {
+                Ok((robot.status()?.aggregate.inserts > before).then_some(()))
+            })?;
+        }
+    }
+    // Every robot's tiles published (none waiting, two periods after its last insert).
+    for (_, _, robot) in &robots {
+        wait_for("the tiles published", || {
+            let f = robot.status()?.fleet;
+            Ok((f.tiles_published > 0 && f.tiles_pending == 0).then_some(()))
+        })?;
+    }
+    std::thread::sleep(Duration::from_millis(300));
+
+    // Probe points: ahead of each robot, and between the lines (seen by two robots).
+    let points: Vec<[f64; 2]> = (0..3)
+        .flat_map(|k| {
+            let y = -15.0 + 15.0 * k as f64;
+            (0..8).flat_map(move |i| [[-4.0 + i as f64, y + 1.0], [-4.0 + i as f64, y - 7.5]])
+        })
+        .collect();
+    let tiles = stored(&router, &site_keys)?;
+    for id in &ids {
+        ensure!(tiles.iter().any(|t| &t.robot == id), "no stored tile of {id}");
+    }
+    let want = expected(tiles.clone(), &points)?;
+    let answered = want.iter().filter(|w| w.is_some()).count();
+    ensure!(
+        answered >= points.len() / 2,
+        "only {answered} of {} probes answerable",
+        points.len()
+    );
+    wait_for("the site answering the stored tiles", || {
+        answers_equal(&site, &points, &want).map(|ok| ok.then_some(()))
+    })?;
+    println!(
+        "site answers {answered} of {} probe points exactly as the stored tiles",
+        points.len()
+    );
+
+    // A point ahead of robot 2 only: the site answers from robot 2's tiles alone.
+    let only2 = [[0.0, 1.0]];
+    let robot2_tiles: Vec<TileUpdate> = tiles.iter().filter(|t| t.robot == ids[1]).cloned().collect();
+    let from2 = expected(robot2_tiles, &only2)?;
+    ensure!(from2[0].is_some(), "robot 2's tiles do not answer {only2:?}");
+    ensure!(
+        answers_equal(&site, &only2, &from2)?,
+        "the site does not answer robot 2's ground from its tiles"
+    );
+    let status = site.status()?;
+    ensure!(status.fleet.storage_answered, "the site found no storage");
+    ensure!(
+        status.fleet.robots.len() == 3,
+        "site status: {:?}",
+        status.fleet.robots
+    );
+    // What `rangegp status --site` prints: the storage, then every robot, alive.
+    let table = site_table(&status, now_ns());
+    println!("{table}");
+    ensure!(table.contains("storage: answered"), "{table}");
+    for id in &ids {
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(id.as_str()))
+            .context("robot row")?;
+        ensure!(row.split_whitespace().nth(1) == Some("yes"), "{table}");
+    }
+
+    // The fleet query: every robot answers; robot 2 alone gives a height at its point.
+    let fleet = site.fleet_elevation(&only2, WAIT, &[&site_id])?;
+    let heard: Vec<&str> = fleet.maps.iter().map(|(m, _)| m.as_str()).collect();
+    let mut want_heard: Vec<&str> = ids.iter().map(String::as_str).collect();
+    want_heard.sort();
+    ensure!(heard == want_heard, "fleet query heard {heard:?}");
+    let fused = fleet.fused[0]
+        .as_ref()
+        .context("no robot answered robot 2's point")?;
+    ensure!(fused.maps == [ids[1].clone()], "fused over {:?}", fused.maps);
+    let own = &fleet
+        .maps
+        .iter()
+        .find(|(m, _)| m == &ids[1])
+        .context("robot 2 missing")?
+        .1[0];
+    ensure!(
+        own.source == Source::Window && own.z_m.is_some_and(|z| (z - fused.z_m).abs() < 1e-12),
+        "robot 2 own answer: {own:?}"
+    );
+
+    // Robot 2 killed: its ground still answers from the site, and it is not alive.
+    let (_, robot2, _) = robots.remove(1);
+    robot2.kill()?;
+    wait_for("robot 2 reported gone", || {
+        let robots = site.status()?.fleet.robots;
+        Ok(robots.iter().any(|r| r.robot == ids[1] && !r.alive).then_some(()))
+    })?;
+    ensure!(
+        answers_equal(&site, &points, &want)?,
+        "the site changed its answers when robot 2 died"
+    );
+    ensure!(
+        answers_equal(&site, &only2, &from2)?,
+        "robot 2's ground no longer answers"
+    );
+    let fleet = site.fleet_elevation(&only2, WAIT, &[&site_id])?;
+    ensure!(
+        fleet.maps.len() == 2,
+        "after the kill the fleet query heard {:?}",
+        fleet.maps
+    );
+
+    // The site killed and restarted: the same answers, from the storage alone.
+    site_daemon.kill()?;
+    site_daemon = spawn_daemon(&site_config)?;
+    let site = client(&site_id, &endpoint)?;
+    // Alive means recovered: the first answers are the stored map's.
+    ensure!(
+        answers_equal(&site, &points, &want)?,
+        "the restarted site answers otherwise"
+    );
+    let status = site.status()?;
+    ensure!(
+        status.fleet.storage_answered
+            && status.fleet.tiles_from_storage == tiles.len() as u64
+            && status.fleet.robots.len() == 3
+            && status.fleet.robots.iter().filter(|r| r.alive).count() == 2,
+        "restarted site: {:?}",
+        status.fleet
+    );
+    println!(
+        "restarted site: {} tiles from the storage, {} robots",
+        status.fleet.tiles_from_storage,
+        status.fleet.robots.len()
+    );
+    drop(site_daemon);
+    Ok(())
+}
