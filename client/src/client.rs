@@ -394,7 +394,11 @@ impl Client {
         &self.session
     }
 
-    fn call<Q: Serialize, R: DeserializeOwned>(&self, key: &str, req: &Q) -> Result<R, ClientError> {
+    pub(crate) fn call<Q: Serialize, R: DeserializeOwned>(
+        &self,
+        key: &str,
+        req: &Q,
+    ) -> Result<R, ClientError> {
         let payload = codec::encode(self.encoding, req)?;
         match self.call_raw(key, payload, self.encoding)? {
             Ok(bytes) => Ok(codec::decode(self.encoding, &bytes)?),

@@ -4,6 +4,7 @@
 
 use crate::client::{Client, ClientError};
 use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::fleet::{RobotCell, SourcesReply, SourcesRequest};
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::{ElevationItem, ElevationReply, ElevationRequest};
 use rangegp_proto::PROTOCOL_VERSION;
@@ -34,6 +35,23 @@ pub struct FleetElevation {
 }
 
 impl Client {
+    /// Whose cells stand behind this map's answers at `points`: per point, each robot's own
+    /// cell there (a site daemon lists every robot's; a robot, its own).
+    pub fn sources(&self, points: &[[f64; 2]]) -> Result<Vec<Vec<RobotCell>>, ClientError> {
+        let req = SourcesRequest {
+            version: PROTOCOL_VERSION,
+            points: points.to_vec(),
+        };
+        let rep: SourcesReply = self.call(&self.keys().query(QueryKind::Sources), &req)?;
+        if rep.items.len() != points.len() {
+            return Err(ClientError::BatchMismatch {
+                sent: points.len(),
+                got: rep.items.len(),
+            });
+        }
+        Ok(rep.items)
+    }
+
     /// Asks every map under `rangegp/*` (but the ids in `exclude`, such as a site daemon whose
     /// answers already fuse the robots') for the elevation at `points`, waiting at most
     /// `deadline`; maps that have not answered by then are left out.

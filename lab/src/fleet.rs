@@ -145,7 +145,7 @@ pub fn site_table(status: &rangegp_proto::msg::StatusReply, now_ns: u64) -> Stri
     );
     let _ = writeln!(
         out,
-        "storage: {}; {} tiles recovered at start, {} received live, {} refused",
+        "storage: {}; {} tiles recovered at start, {} received live, {} refused, {} dropped",
         if f.storage_answered {
             "answered"
         } else {
@@ -153,7 +153,8 @@ pub fn site_table(status: &rangegp_proto::msg::StatusReply, now_ns: u64) -> Stri
         },
         f.tiles_from_storage,
         f.tiles_received,
-        f.tiles_refused
+        f.tiles_refused,
+        f.tiles_dropped
     );
     let _ = writeln!(
         out,

@@ -78,6 +78,40 @@ pub fn parse_tile_key(site: &MapKeys, key: &str) -> Option<(String, (i32, i32))>
     Some((robot.to_owned(), (column.parse().ok()?, row.parse().ok()?)))
 }
 
+/// `query/sources`: whose cells stand behind the aggregate's answers at map (x, y) points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SourcesRequest {
+    /// Protocol version of the request.
+    pub version: u32,
+    /// Map (x, y) points, metres.
+    pub points: Vec<[f64; 2]>,
+}
+
+/// One robot's own cell under a point.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RobotCell {
+    /// The robot's map id.
+    pub robot: String,
+    /// Its fused height there, metres.
+    pub z_m: f64,
+    /// Its variance, m².
+    pub var_m2: f64,
+    /// Scans it fused there.
+    pub scans: u32,
+    /// The newest scan its tile reflects, ns since the Unix epoch.
+    pub newest_scan_ns: u64,
+}
+
+/// Per request point, the robots' cells the answer there fuses (a site: every robot's; a robot:
+/// its own; empty where no cell is held).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SourcesReply {
+    /// Protocol version of the reply.
+    pub version: u32,
+    /// One list per request point, in robot-id order.
+    pub items: Vec<Vec<RobotCell>>,
+}
+
 /// What a daemon does in a fleet.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -125,6 +159,9 @@ pub struct FleetInfo {
     pub tiles_received: u64,
     /// Site: tile messages refused (bad bytes, another version or geometry, older than held).
     pub tiles_refused: u64,
+    /// Site: tile messages dropped because the assembler's queue was full (the storage keeps
+    /// them: a restart of the site recovers them).
+    pub tiles_dropped: u64,
     /// Site: the robots whose tiles it holds.
     pub robots: Vec<RobotTiles>,
 }

@@ -22,17 +22,20 @@ pub enum QueryKind {
     View,
     /// Slope with σ and risk at (x, y), over a robot's footprint.
     Slope,
+    /// Whose cells stand behind the aggregate's answer at (x, y): each robot's own cell there.
+    Sources,
 }
 
 impl QueryKind {
     /// Every kind, for declaring queryables.
-    pub const ALL: [QueryKind; 6] = [
+    pub const ALL: [QueryKind; 7] = [
         QueryKind::Elevation,
         QueryKind::Variance,
         QueryKind::Ray,
         QueryKind::Grid,
         QueryKind::View,
         QueryKind::Slope,
+        QueryKind::Sources,
     ];
 
     /// The last key chunk of this kind.
@@ -44,6 +47,7 @@ impl QueryKind {
             QueryKind::Grid => "grid",
             QueryKind::View => "view",
             QueryKind::Slope => "slope",
+            QueryKind::Sources => "sources",
         }
     }
 }

@@ -526,6 +526,8 @@ pub struct QueryLatencies {
     pub view: LatencySummary,
     /// `query/slope`.
     pub slope: LatencySummary,
+    /// `query/sources`.
+    pub sources: LatencySummary,
     /// `status`.
     pub status: LatencySummary,
 }

@@ -691,6 +691,12 @@ impl Config {
         if let Some(reason) = self.layers.robot().problem() {
             return Err(invalid("layers", reason));
         }
+        if !self.fleet.site.is_empty() && !self.aggregate.enabled {
+            return Err(invalid(
+                "fleet.site",
+                "needs aggregate.enabled: the tiles a robot publishes are its aggregate's",
+            ));
+        }
         if self.checkpoint.interval_ms == 0 {
             return Err(invalid("checkpoint.interval_ms", "must be positive"));
         }

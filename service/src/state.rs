@@ -46,6 +46,9 @@ pub struct DaemonState {
     /// The daemon's part in a fleet, for status (the tile publisher or the site assembler
     /// updates it).
     pub fleet: Mutex<rangegp_proto::fleet::FleetInfo>,
+    /// A site daemon's record of whose cells its answers fuse (`None` on a robot: its own
+    /// aggregate's cells are its sources).
+    pub site_sources: arc_swap::ArcSwapOption<crate::fleet::site_map::SiteSources>,
 }
 
 /// A correction waiting for the aggregate thread.

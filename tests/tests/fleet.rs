@@ -231,6 +231,17 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         ensure!(row.split_whitespace().nth(1) == Some("yes"), "{table}");
     }
 
+    // Provenance: the site's answer there stands on robot 2's cell alone, the very cell robot 2
+    // holds.
+    let under = site.sources(&only2)?.remove(0);
+    let names: Vec<&str> = under.iter().map(|c| c.robot.as_str()).collect();
+    ensure!(
+        names == [ids[1].as_str()],
+        "sources at robot 2's point: {names:?}"
+    );
+    let own = robots[1].2.sources(&only2)?.remove(0);
+    ensure!(own == under, "robot 2 holds {own:?}, the site lists {under:?}");
+
     // The fleet query: every robot answers; robot 2 alone gives a height at its point.
     let fleet = site.fleet_elevation(&only2, WAIT, &[&site_id])?;
     let heard: Vec<&str> = fleet.maps.iter().map(|(m, _)| m.as_str()).collect();
@@ -278,7 +289,11 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
     site_daemon.kill()?;
     site_daemon = spawn_daemon(&site_config)?;
     let site = client(&site_id, &endpoint)?;
-    // Alive means recovered: the first answers are the stored map's.
+    // Alive means recovered: the first answers are the stored map's, on the same cells.
+    ensure!(
+        site.sources(&only2)?.remove(0) == under,
+        "the restarted site lists other sources"
+    );
     ensure!(
         answers_equal(&site, &points, &want)?,
         "the restarted site answers otherwise"

@@ -156,6 +156,7 @@ impl DaemonBuilder {
                 site: config.fleet_site().map(|k| k.map_id().to_owned()),
                 ..FleetInfo::default()
             }),
+            site_sources: arc_swap::ArcSwapOption::empty(),
         });
         // From here on an early return drops `daemon`, which stops what has started.
         let mut daemon = Daemon {
@@ -172,7 +173,7 @@ impl DaemonBuilder {
             session: Some(session.clone()),
         };
         if config.fleet.role == FleetRole::Site {
-            daemon.start_site(&config, world_params)?;
+            daemon.start_site(&session, &config, world_params)?;
             return Ok(daemon);
         }
         let shutdown = daemon.shutdown.clone();
@@ -417,13 +418,16 @@ impl Daemon {
     /// tiles, the storage's tiles (waiting up to `fleet.storage_wait_ms` for a storage), the
     /// assembler of live tiles, the query server and the exporter. No
     /// scan intake, fitting or checkpoints: the storage is the site's memory.
-    fn start_site(&mut self, config: &Config, params: WorldParams) -> Result<(), StartError> {
-        let (Some(session), Some(site)) = (self.session.clone(), config.fleet_site()) else {
-            return Ok(());
-        };
+    fn start_site(
+        &mut self,
+        session: &zenoh::Session,
+        config: &Config,
+        params: WorldParams,
+    ) -> Result<(), StartError> {
+        let site = config.keys();
         let state = Arc::clone(&self.state);
         let (tx, rx) = std::sync::mpsc::sync_channel(assemble::TILE_QUEUE);
-        let subscriber = assemble::subscribe(&session, &site, tx, Arc::clone(&state)).map_err(|source| {
+        let subscriber = assemble::subscribe(session, &site, tx, Arc::clone(&state)).map_err(|source| {
             StartError::Zenoh {
                 action: "subscribe to the site's tiles",
                 source,
@@ -436,7 +440,7 @@ impl Daemon {
         };
         let shutdown = self.shutdown.clone();
         // Everything stored first: once its queryables are declared, the site answers all of it.
-        let site_map = assemble::recover(&session, &state, &settings, &shutdown);
+        let site_map = assemble::recover(session, &state, &settings, &shutdown);
         let thread = {
             let (session, state) = (session.clone(), Arc::clone(&state));
             spawn("rangegp-site", move || {
@@ -448,7 +452,7 @@ impl Daemon {
             subscriber: Some(subscriber),
         });
         self.server = Some(QueryServer::start(
-            &session,
+            session,
             Arc::clone(&state),
             config.query.threads,
             64,

@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use tracing::{info, info_span, warn};
 use zenoh::Wait;
 
-/// Tile messages waiting for the assembler at most (about 2 KiB each); beyond, one is refused
+/// Tile messages waiting for the assembler at most (about 2 KiB each); beyond, one is dropped
 /// and counted (the storage still has it: a restart recovers it).
 pub const TILE_QUEUE: usize = 16_384;
 
@@ -53,7 +53,7 @@ pub fn subscribe(
                     .fleet
                     .lock()
                     .unwrap_or_else(PoisonError::into_inner)
-                    .tiles_refused += 1;
+                    .tiles_dropped += 1;
             }
         })
         .wait()
@@ -130,11 +130,7 @@ fn from_storage(
     wait: Duration,
     shutdown: &Shutdown,
 ) -> (Vec<Arrival>, bool) {
-    let querier = match session
-        .declare_querier(site_tiles(site))
-        .timeout(wait.max(Duration::from_millis(1)))
-        .wait()
-    {
+    let querier = match session.declare_querier(site_tiles(site)).wait() {
         Ok(q) => q,
         Err(e) => {
             warn!(error = %e, "cannot ask for the stored tiles; the site starts from live tiles");
@@ -156,7 +152,11 @@ fn from_storage(
             return (Vec::new(), false);
         }
     }
-    let replies = match querier.get().wait() {
+    // The whole wait (a storage, then its tiles) is `wait`: the query gets what is left.
+    let left = deadline
+        .saturating_duration_since(Instant::now())
+        .max(Duration::from_millis(100));
+    let replies = match session.get(site_tiles(site)).timeout(left).wait() {
         Ok(r) => r,
         Err(e) => {
             warn!(error = %e, "the stored tiles cannot be asked for");
@@ -228,6 +228,7 @@ fn offer(state: &DaemonState, site: &mut SiteMap, keys: &MapKeys, arrivals: Vec<
     state
         .snapshot
         .rcu(|old| old.with_aggregate(Some(Arc::clone(&world))));
+    state.site_sources.store(Some(Arc::new(site.sources())));
 }
 
 /// The robots of the site map, each marked alive when its daemon's token is seen, into status.

@@ -63,18 +63,37 @@ impl TileLedger {
     pub fn scan(&mut self, world: &WorldAggregate, pages: Vec<TilePage>, now: Instant) {
         // Every tile's cells, hashed (a few ms a second for a full radius): a fit's identity would
         // be cheaper, but a freed fit's address can come back for the next one.
+        // A tile that owns no cell here is never sent: cells leave a robot's memory by eviction
+        // (its page keeps them) or stand in a neighbour's margin, neither of which is a deletion.
         for key in world.tile_keys().collect::<Vec<_>>() {
             let cells = world.tile_cells(key);
-            let sent = self.sent.get(&key).copied();
-            if sent != Some(hash(&cells)) && !(cells.is_empty() && sent.is_none()) {
+            if !cells.is_empty() && self.sent.get(&key).copied() != Some(hash(&cells)) {
                 self.pending.entry(key).or_insert((now, None)).1 = None;
             }
         }
         for page in pages {
-            if self.sent.get(&page.key).copied() != Some(hash(&page.cells)) {
+            if !page.cells.is_empty() && self.sent.get(&page.key).copied() != Some(hash(&page.cells)) {
                 self.pending.entry(page.key).or_insert((now, None)).1 = Some(page.cells);
             }
         }
+    }
+
+    /// Forgets what was sent, so that every tile goes again (the site's subscribers were
+    /// unreachable: what was put meanwhile reached no one).
+    pub fn forget_sent(&mut self) {
+        self.sent.clear();
+    }
+
+    /// Records that `outgoing` reached Zenoh.
+    pub fn sent(&mut self, outgoing: &Outgoing) {
+        self.sent.insert(outgoing.key, outgoing.hash);
+    }
+
+    /// Puts `outgoing` back among the waiting tiles (its put failed).
+    pub fn retry(&mut self, outgoing: Outgoing, now: Instant) {
+        self.pending
+            .entry(outgoing.key)
+            .or_insert((now, outgoing.departed));
     }
 
     /// Tiles waiting.
@@ -83,14 +102,15 @@ impl TileLedger {
     }
 
     /// The waiting tiles as messages, oldest change first, until `budget` bytes are spent (at
-    /// least one is taken); each taken tile counts as sent.
+    /// least one is taken); they leave the waiting list, and count as sent once
+    /// [`Self::sent`] says so.
     pub fn take(
         &mut self,
         world: &WorldAggregate,
         robot: &str,
         budget: u64,
         published_ns: u64,
-    ) -> Vec<(TileUpdate, Vec<u8>)> {
+    ) -> Vec<Outgoing> {
         let mut order: Vec<((i32, i32), Instant)> = self.pending.iter().map(|(&k, &(t, _))| (k, t)).collect();
         order.sort_by_key(|&(k, t)| (t, k));
         let newest_scan_ns = world.newest_scan().map_or(0, |s| s.stamp_ns);
@@ -103,7 +123,7 @@ impl TileLedger {
             let Some((_, departed)) = self.pending.remove(&key) else {
                 continue;
             };
-            let cells = departed.unwrap_or_else(|| world.tile_cells(key));
+            let cells = departed.clone().unwrap_or_else(|| world.tile_cells(key));
             let update = TileUpdate {
                 version: PROTOCOL_VERSION,
                 robot: robot.to_owned(),
@@ -128,14 +148,34 @@ impl TileLedger {
             match encode(Encoding::Bincode, &update) {
                 Ok(bytes) => {
                     spent += bytes.len() as u64;
-                    self.sent.insert(key, hash(&cells));
-                    out.push((update, bytes));
+                    out.push(Outgoing {
+                        key,
+                        hash: hash(&cells),
+                        departed,
+                        update,
+                        bytes,
+                    });
                 }
                 Err(e) => warn!(error = %e, "a tile cannot be encoded; it is not sent"),
             }
         }
         out
     }
+}
+
+/// One tile on its way out.
+#[derive(Debug)]
+pub struct Outgoing {
+    /// Tile index.
+    pub key: (i32, i32),
+    /// Hash of its cells.
+    hash: u64,
+    /// Its cells when it left the robot's radius (kept for a retry).
+    departed: Option<TileCells>,
+    /// The message.
+    pub update: TileUpdate,
+    /// The message's bytes.
+    pub bytes: Vec<u8>,
 }
 
 /// Wall-clock now, ns since the Unix epoch (0 before it).
@@ -156,6 +196,8 @@ fn hash(cells: &[((i32, i32), Cell)]) -> u64 {
 
 /// Every period until `shutdown`: sends the changed tiles of the published aggregate (and the
 /// departed ones) on the site's keys, within the byte budget; counts into the fleet status.
+/// While nothing subscribes to the site's tiles (no storage, no site reachable) tiles wait; when
+/// a subscriber comes back, every tile goes again.
 pub fn publish_loop(
     session: &zenoh::Session,
     state: &DaemonState,
@@ -167,27 +209,56 @@ pub fn publish_loop(
     let mut ledger = TileLedger::default();
     let budget = (settings.max_bytes_per_s as f64 * settings.period.as_secs_f64()).ceil() as u64;
     let encoding = rangegp_transport::zenoh_encoding(Encoding::Bincode);
+    // A publisher on a key under this robot's tiles that is never put to (no tile index parses
+    // from it): its matching status says whether a storage or a site subscribes.
+    let probe_key = format!(
+        "rangegp/{}/tiles/{}/reach",
+        settings.site.map_id(),
+        robot.map_id()
+    );
+    let probe = match session.declare_publisher(probe_key).wait() {
+        Ok(p) => p,
+        Err(e) => {
+            warn!(error = %e, "cannot watch the site's subscribers; no tile will be published");
+            return;
+        }
+    };
+    let mut reachable = false;
     while !shutdown.sleep_until(Instant::now() + settings.period) {
         let Some(world) = state.snapshot.load().aggregate.clone() else {
             continue;
         };
         let _span = info_span!("tiles", site = settings.site.map_id()).entered();
+        let now_reachable = probe.matching_status().wait().is_ok_and(|m| m.matching());
+        if now_reachable && !reachable {
+            ledger.forget_sent();
+        }
+        reachable = now_reachable;
         ledger.scan(&world, departures.take(), Instant::now());
         let (mut tiles, mut bytes) = (0u64, 0u64);
-        for (update, payload) in ledger.take(&world, robot.map_id(), budget, wall_ns()) {
-            let key = tile_key(&settings.site, &robot, (update.tile_column, update.tile_row));
-            let size = payload.len() as u64;
-            match session
-                .put(&key, payload)
-                .encoding(encoding.clone())
-                .congestion_control(CongestionControl::Block)
-                .wait()
-            {
-                Ok(()) => {
-                    tiles += 1;
-                    bytes += size;
+        if reachable {
+            for outgoing in ledger.take(&world, robot.map_id(), budget, wall_ns()) {
+                if shutdown.is_triggered() {
+                    ledger.retry(outgoing, Instant::now());
+                    continue;
                 }
-                Err(e) => debug!(error = %e, key, "a tile was not published"),
+                let key = tile_key(&settings.site, &robot, outgoing.key);
+                let put = session
+                    .put(&key, outgoing.bytes.clone())
+                    .encoding(encoding.clone())
+                    .congestion_control(CongestionControl::Block)
+                    .wait();
+                match put {
+                    Ok(()) => {
+                        tiles += 1;
+                        bytes += outgoing.bytes.len() as u64;
+                        ledger.sent(&outgoing);
+                    }
+                    Err(e) => {
+                        debug!(error = %e, key, "a tile was not published; it waits");
+                        ledger.retry(outgoing, Instant::now());
+                    }
+                }
             }
         }
         let mut fleet = state.fleet.lock().unwrap_or_else(PoisonError::into_inner);
@@ -233,8 +304,14 @@ mod tests {
         assert_eq!(ledger.pending(), 3);
         let first = ledger.take(&w, "r", 1, 7);
         assert_eq!(first.len(), 1, "a budget of one byte still sends one tile");
-        let rest = ledger.take(&w, "r", u64::MAX, 7);
-        assert_eq!(rest.len(), 2);
+        // A failed put waits again; a successful one counts as sent.
+        for o in first {
+            ledger.retry(o, t0);
+        }
+        assert_eq!(ledger.pending(), 3);
+        for o in ledger.take(&w, "r", u64::MAX, 7) {
+            ledger.sent(&o);
+        }
         assert_eq!(ledger.pending(), 0);
         // Nothing changed: nothing to send, even after a refit of the same cells.
         let mut same = w.clone();
@@ -247,8 +324,9 @@ mod tests {
         ledger.scan(&changed, Vec::new(), t0);
         let sent = ledger.take(&changed, "r", u64::MAX, 8);
         assert_eq!(sent.len(), 1);
-        assert_eq!((sent[0].0.tile_column, sent[0].0.tile_row), (0, 0));
-        assert_eq!(sent[0].0.cells[0].z_m, 0.5);
+        assert_eq!((sent[0].update.tile_column, sent[0].update.tile_row), (0, 0));
+        assert_eq!(sent[0].update.cells[0].z_m, 0.5);
+        ledger.sent(&sent[0]);
         // A tile that left the radius with a change not yet sent goes from its page.
         let page = TilePage {
             key: (1, 0),
@@ -263,9 +341,20 @@ mod tests {
             points: Vec::new(),
             noise_var: Vec::new(),
         };
-        ledger.scan(&changed, vec![page], t0);
+        let emptied = TilePage {
+            key: (3, 0),
+            cells: Vec::new(),
+            points: Vec::new(),
+            noise_var: Vec::new(),
+        };
+        ledger.scan(&changed, vec![page, emptied], t0);
         let sent = ledger.take(&changed, "r", u64::MAX, 9);
-        assert_eq!(sent.len(), 1);
-        assert_eq!(sent[0].0.cells[0].z_m, 0.9);
+        assert_eq!(sent.len(), 1, "a page without cells is not a deletion");
+        assert_eq!(sent[0].update.cells[0].z_m, 0.9);
+        ledger.sent(&sent[0]);
+        // After the subscribers were unreachable, every tile goes again.
+        ledger.forget_sent();
+        ledger.scan(&changed, Vec::new(), t0);
+        assert_eq!(ledger.pending(), 3);
     }
 }

@@ -3,10 +3,11 @@
 
 use crate::map::aggregate::world::{Cell, TileCells, WorldAggregate, WorldParams};
 use crate::map::aggregate::AggregateError;
-use rangegp_proto::fleet::{RobotTiles, TileCell, TileUpdate};
+use rangegp_proto::fleet::{RobotCell, RobotTiles, TileUpdate};
 use rangegp_proto::keys::MapKeys;
 use rangegp_proto::PROTOCOL_VERSION;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Why a tile update was not taken.
@@ -26,26 +27,65 @@ pub enum TileRefusal {
     /// The robot id is not a valid map id.
     #[error("robot id {0:?} is not a valid map id")]
     Robot(String),
-    /// A cell lies outside the tile, repeats, or holds a non-finite height or a non-positive
-    /// variance.
-    #[error("tile ({0}, {1}) holds a cell outside it, twice, or with an invalid height or variance")]
+    /// The tile index is beyond [`MAX_TILE_INDEX`], or a cell lies outside the tile, repeats, or
+    /// holds a height beyond [`MAX_ABS_Z_M`] (or not finite) or a variance below [`MIN_VAR_M2`]
+    /// (or not finite).
+    #[error("tile ({0}, {1}) is out of range or holds a cell outside it, twice, or with an invalid height or variance")]
     Cell(i32, i32),
     /// The site holds a newer version of this tile.
     #[error("an older version of a tile the site holds")]
     Stale,
 }
 
-/// What one robot said of one tile, as kept.
-#[derive(Debug, Clone, PartialEq)]
-struct Held {
-    update: TileUpdate,
+/// Tile indices beyond this (either axis) are refused: 10⁶ tiles of 2.5 m is 2 500 km, far
+/// beyond any site, and far from where cell and tile arithmetic could overflow.
+pub const MAX_TILE_INDEX: i32 = 1_000_000;
+/// Heights beyond this are refused, metres (higher than any mountain above any sea floor).
+pub const MAX_ABS_Z_M: f64 = 20_000.0;
+/// Variances below this are refused, m² (a micrometre: no sensor measures ground better; a
+/// smaller one would let one robot's cell outweigh every other's, and a subnormal one overflows
+/// the fused precision).
+pub const MIN_VAR_M2: f64 = 1e-12;
+
+/// Every robot's latest tiles, by robot id and tile index (shared: a copy for queries costs a
+/// pointer per tile).
+type Robots = BTreeMap<String, BTreeMap<(i32, i32), Arc<TileUpdate>>>;
+
+/// Whose cells the site's answers fuse: every robot's latest tiles, as queries see them.
+#[derive(Debug, Clone)]
+pub struct SiteSources {
+    params: WorldParams,
+    robots: Robots,
+}
+
+impl SiteSources {
+    /// Each robot's own cell under map (x, y), in robot-id order.
+    pub fn at(&self, x: f64, y: f64) -> Vec<RobotCell> {
+        let (cell_m, n) = (self.params.cell_m, self.params.tile_cells);
+        let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
+        let key = (c.0.div_euclid(n), c.1.div_euclid(n));
+        self.robots
+            .iter()
+            .filter_map(|(robot, tiles)| {
+                let tile = tiles.get(&key)?;
+                let cell = tile.cells.iter().find(|t| (t.column, t.row) == c)?;
+                Some(RobotCell {
+                    robot: robot.clone(),
+                    z_m: cell.z_m,
+                    var_m2: cell.var_m2,
+                    scans: cell.scans,
+                    newest_scan_ns: tile.newest_scan_ns,
+                })
+            })
+            .collect()
+    }
 }
 
 /// Every robot's latest tiles and the aggregate fused from them.
 #[derive(Debug, Clone)]
 pub struct SiteMap {
     params: WorldParams,
-    robots: BTreeMap<String, BTreeMap<(i32, i32), Held>>,
+    robots: Robots,
     world: WorldAggregate,
 }
 
@@ -77,17 +117,20 @@ impl SiteMap {
         }
         MapKeys::new(&update.robot).map_err(|_| TileRefusal::Robot(update.robot.clone()))?;
         let key = (update.tile_column, update.tile_row);
+        if key.0.abs() > MAX_TILE_INDEX || key.1.abs() > MAX_TILE_INDEX {
+            return Err(TileRefusal::Cell(key.0, key.1));
+        }
         let n = self.params.tile_cells;
         let mut seen = BTreeSet::new();
         for c in &update.cells {
             let inside = (c.column.div_euclid(n), c.row.div_euclid(n)) == key;
-            let valid = c.z_m.is_finite() && c.var_m2.is_finite() && c.var_m2 > 0.0;
+            let valid = c.z_m.abs() <= MAX_ABS_Z_M && c.var_m2.is_finite() && c.var_m2 >= MIN_VAR_M2;
             if !inside || !valid || !seen.insert((c.column, c.row)) {
                 return Err(TileRefusal::Cell(key.0, key.1));
             }
         }
         let held = self.robots.get(&update.robot).and_then(|t| t.get(&key));
-        if held.is_some_and(|h| !update.newer_than(&h.update)) {
+        if held.is_some_and(|h| !update.newer_than(h)) {
             return Err(TileRefusal::Stale);
         }
         Ok(())
@@ -113,7 +156,7 @@ impl SiteMap {
             self.robots
                 .entry(update.robot.clone())
                 .or_default()
-                .insert(key, Held { update });
+                .insert(key, Arc::new(update));
         }
         let fused: BTreeMap<(i32, i32), TileCells> = touched
             .into_iter()
@@ -134,7 +177,7 @@ impl SiteMap {
         let mut sums: BTreeMap<(i32, i32), (f64, f64, u32)> = BTreeMap::new();
         for tiles in self.robots.values() {
             let Some(held) = tiles.get(&key) else { continue };
-            for c in &held.update.cells {
+            for c in &held.cells {
                 let s = sums.entry((c.column, c.row)).or_insert((0.0, 0.0, 0));
                 s.0 += 1.0 / c.var_m2;
                 s.1 += c.z_m / c.var_m2;
@@ -162,23 +205,12 @@ impl SiteMap {
             .collect()
     }
 
-    /// The robots whose cells make the answer at map (x, y): each robot's own cell there.
-    pub fn sources(&self, x: f64, y: f64) -> Vec<(String, TileCell)> {
-        let (cell_m, n) = (self.params.cell_m, self.params.tile_cells);
-        let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
-        let key = (c.0.div_euclid(n), c.1.div_euclid(n));
-        self.robots
-            .iter()
-            .filter_map(|(robot, tiles)| {
-                let cell = tiles
-                    .get(&key)?
-                    .update
-                    .cells
-                    .iter()
-                    .find(|t| (t.column, t.row) == c)?;
-                Some((robot.clone(), *cell))
-            })
-            .collect()
+    /// Whose cells the answers fuse, for `query/sources`.
+    pub fn sources(&self) -> SiteSources {
+        SiteSources {
+            params: self.params,
+            robots: self.robots.clone(),
+        }
     }
 
     /// Per robot: tiles and cells held, and the newest scan they reflect (`alive` false: the
@@ -189,8 +221,8 @@ impl SiteMap {
             .map(|(robot, tiles)| RobotTiles {
                 robot: robot.clone(),
                 tiles: tiles.len() as u64,
-                cells: tiles.values().map(|h| h.update.cells.len() as u64).sum(),
-                newest_scan_ns: tiles.values().map(|h| h.update.newest_scan_ns).max().unwrap_or(0),
+                cells: tiles.values().map(|h| h.cells.len() as u64).sum(),
+                newest_scan_ns: tiles.values().map(|h| h.newest_scan_ns).max().unwrap_or(0),
                 alive: false,
             })
             .collect()
@@ -201,6 +233,7 @@ impl SiteMap {
 mod tests {
     use super::*;
     use crate::map::aggregate::Aggregate;
+    use rangegp_proto::fleet::TileCell;
 
     fn update(robot: &str, published_ns: u64, cells: &[(i32, i32, f64, f64)]) -> TileUpdate {
         let p = WorldParams::default();
@@ -240,8 +273,9 @@ mod tests {
         let cell = site.world().cells()[&(1, 1)];
         assert!((cell.var - 0.75e-4).abs() < 1e-15);
         assert!((cell.z - (0.10 / 1e-4 + 0.20 / 3e-4) * 0.75e-4).abs() < 1e-12);
-        assert_eq!(site.sources(0.3, 0.3).len(), 2);
         assert!(site.world().elevation(0.3, 0.3).is_some());
+        let under: Vec<String> = site.sources().at(0.3, 0.3).into_iter().map(|c| c.robot).collect();
+        assert_eq!(under, ["a", "b"]);
         // A newer tile from a replaces its cells; an older one is refused.
         let refused = site
             .offer(vec![update("a", 2, &[(2, 1, 0.05, 1e-4)]), update("a", 1, &[])])
@@ -266,9 +300,14 @@ mod tests {
             update("a", 1, &[(1, 1, f64::NAN, 1e-4)]),
             update("a", 1, &[(1, 1, 0.1, 0.0)]),
             update("a", 1, &[(1, 1, 0.1, 1e-4), (1, 1, 0.2, 1e-4)]),
+            update("a", 1, &[(1, 1, 0.1, 1e-300)]),
+            update("a", 1, &[(1, 1, 3e4, 1e-4)]),
         ] {
             assert_eq!(site.check(&bad), Err(TileRefusal::Cell(0, 0)));
         }
+        let mut far = update("a", 1, &[]);
+        far.tile_column = i32::MAX;
+        assert_eq!(site.check(&far), Err(TileRefusal::Cell(i32::MAX, 0)));
         assert!(matches!(
             site.check(&update("a/b", 1, &[])),
             Err(TileRefusal::Robot(_))

@@ -233,6 +233,7 @@ impl Metrics {
             grid: self.query(Some(QueryKind::Grid)).summary(),
             view: self.query(Some(QueryKind::View)).summary(),
             slope: self.query(Some(QueryKind::Slope)).summary(),
+            sources: self.query(Some(QueryKind::Sources)).summary(),
             status: self.query(None).summary(),
         }
     }

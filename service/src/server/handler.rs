@@ -7,6 +7,7 @@ use crate::map::layers::{footprint_reach, LayerModel, MAX_FOOTPRINT_REACH};
 use crate::map::query;
 use crate::map::MapSnapshot;
 use rangegp_proto::codec::{self, Encoding};
+use rangegp_proto::fleet::{RobotCell, SourcesReply, SourcesRequest};
 use rangegp_proto::keys::QueryKind;
 use rangegp_proto::msg::*;
 use rangegp_proto::PROTOCOL_VERSION;
@@ -125,6 +126,27 @@ pub fn answer(
             let req: ViewRequest = decode(encoding, payload)?;
             encode(encoding, &view(&req, state)?)
         }
+        Endpoint::Query(QueryKind::Sources) => {
+            let req: SourcesRequest = decode(encoding, payload)?;
+            check_points(&req.points, state)?;
+            let items = match state.site_sources.load_full() {
+                Some(site) => req.points.iter().map(|p| site.at(p[0], p[1])).collect(),
+                None => {
+                    let snap = snapshot(state)?;
+                    req.points
+                        .iter()
+                        .map(|p| own_cell(state, &snap, p[0], p[1]))
+                        .collect()
+                }
+            };
+            encode(
+                encoding,
+                &SourcesReply {
+                    version: PROTOCOL_VERSION,
+                    items,
+                },
+            )
+        }
         Endpoint::Query(QueryKind::Slope) => {
             let req: SlopeRequest = decode(encoding, payload)?;
             let snap = snapshot(state)?;
@@ -136,6 +158,28 @@ pub fn answer(
             encode(encoding, &reply)
         }
     }
+}
+
+/// A robot's own aggregate cell under map (x, y), as `query/sources` gives it (none where it
+/// holds no cell).
+fn own_cell(state: &DaemonState, snap: &crate::map::MapSnapshot, x: f64, y: f64) -> Vec<RobotCell> {
+    let Some(world) = &snap.aggregate else {
+        return Vec::new();
+    };
+    let cell_m = world.params().cell_m;
+    let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
+    world
+        .cells()
+        .get(&c)
+        .map(|cell| RobotCell {
+            robot: state.keys.map_id().to_owned(),
+            z_m: cell.z,
+            var_m2: cell.var,
+            scans: cell.scans,
+            newest_scan_ns: world.newest_scan().map_or(0, |s| s.stamp_ns),
+        })
+        .into_iter()
+        .collect()
 }
 
 /// The pixels of a validated view request: one ray each, cast like a ray query.
