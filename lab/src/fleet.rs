@@ -12,6 +12,21 @@ use zenoh::Wait;
 use zenoh_plugin_storage_manager::StoragesPlugin;
 use zenoh_plugin_trait::Plugin;
 
+/// A daemon configuration for a fleet on one machine: a Zenoh client of `router` (everything
+/// goes through it, nothing listens), nothing on disk, no metrics port.
+pub fn daemon_config(map_id: &str, router: &str) -> rangegp_service::config::Config {
+    let mut c = rangegp_service::config::Config {
+        map_id: map_id.into(),
+        ..Default::default()
+    };
+    c.zenoh.mode = "client".into();
+    c.zenoh.listen = Vec::new();
+    c.zenoh.connect = vec![router.into()];
+    c.checkpoint.enabled = false;
+    c.metrics.listen = String::new();
+    c
+}
+
 /// The plugin's name, and its key under `plugins` in the router's configuration.
 const PLUGIN: &str = "storage_manager";
 

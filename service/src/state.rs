@@ -48,7 +48,7 @@ pub struct DaemonState {
     pub fleet: Mutex<rangegp_proto::fleet::FleetInfo>,
     /// A site daemon's record of whose cells its answers fuse (`None` on a robot: its own
     /// aggregate's cells are its sources).
-    pub site_sources: arc_swap::ArcSwapOption<crate::fleet::site_map::SiteSources>,
+    pub site_sources: arc_swap::ArcSwapOption<crate::map::aggregate::sources::SiteSources>,
 }
 
 /// A correction waiting for the aggregate thread.

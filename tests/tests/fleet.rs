@@ -11,7 +11,7 @@
 
 use anyhow::{ensure, Context, Result};
 use rangegp_client::{Client, ScanPublisher};
-use rangegp_lab::fleet::{site_table, StorageRouter};
+use rangegp_lab::fleet::{daemon_config, site_table, StorageRouter};
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{decode, Encoding};
 use rangegp_proto::fleet::{parse_tile_key, FleetRole, TileUpdate};
@@ -49,20 +49,6 @@ fn spawn_daemon(config: &Config) -> Result<ChildProcess> {
     let mut child = ChildProcess::spawn("child_daemon", &path.display().to_string())?;
     child.expect("ready", WAIT)?;
     Ok(child)
-}
-
-/// A daemon configuration: a Zenoh client of the router, nothing on disk, no metrics port.
-fn config(map_id: &str, router: &str) -> Config {
-    let mut c = Config {
-        map_id: map_id.into(),
-        ..Config::default()
-    };
-    c.zenoh.mode = "client".into();
-    c.zenoh.listen = Vec::new();
-    c.zenoh.connect = vec![router.into()];
-    c.checkpoint.enabled = false;
-    c.metrics.listen = String::new();
-    c
 }
 
 fn client(map_id: &str, router: &str) -> Result<Client> {
@@ -136,7 +122,7 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
     let site_keys = MapKeys::new(&site_id)?;
     let router = StorageRouter::start(&endpoint, &site_keys, WAIT)?;
 
-    let mut site_config = config(&site_id, &endpoint);
+    let mut site_config = daemon_config(&site_id, &endpoint);
     site_config.fleet.role = FleetRole::Site;
     let mut site_daemon = spawn_daemon(&site_config)?;
     let site = client(&site_id, &endpoint)?;
@@ -145,7 +131,7 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
     let mut robots = Vec::new();
     let ids: Vec<String> = (1..=3).map(|k| unique_id(&format!("robot{k}"))).collect();
     for id in &ids {
-        let mut c = config(id, &endpoint);
+        let mut c = daemon_config(id, &endpoint);
         c.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
         c.fleet.site = site_id.clone();
         c.fleet.tile_period_ms = 100;

@@ -3,7 +3,7 @@
 //! its tiles reach the site through the router, and a planner (a client of the router) asks both
 //! for single points over the mapped ground, interleaved so that both share the machine's noise.
 
-use crate::fleet::StorageRouter;
+use crate::fleet::{daemon_config, StorageRouter};
 use crate::scangen::{now_ns, to_message};
 use anyhow::{ensure, Result};
 use rand::{Rng, SeedableRng};
@@ -12,7 +12,6 @@ use rangegp_client::{Client, ScanPublisher};
 use rangegp_proto::fleet::FleetRole;
 use rangegp_proto::keys::MapKeys;
 use rangegp_proto::msg::StatusReply;
-use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_sim::{simulate_scan, CraterParams, Heightmap, Path, ScannerPreset};
 use serde::Serialize;
@@ -55,20 +54,6 @@ pub struct FleetReport {
 /// Longest wait for any step of the setup.
 const WAIT: Duration = Duration::from_secs(60);
 
-/// A daemon configuration as a Zenoh client of `router`: nothing on disk, no metrics port.
-fn client_config(map_id: &str, router: &str) -> Config {
-    let mut c = Config {
-        map_id: map_id.into(),
-        ..Config::default()
-    };
-    c.zenoh.mode = "client".into();
-    c.zenoh.listen = Vec::new();
-    c.zenoh.connect = vec![router.into()];
-    c.checkpoint.enabled = false;
-    c.metrics.listen = String::new();
-    c
-}
-
 /// Polls `client`'s status until `done` (bounded).
 fn wait(client: &Client, what: &str, done: impl Fn(&StatusReply) -> bool) -> Result<StatusReply> {
     let deadline = Instant::now() + WAIT;
@@ -89,10 +74,10 @@ pub fn run_fleet(opts: &FleetBenchOptions) -> Result<FleetReport> {
     let tag = std::process::id();
     let (site_id, robot_id) = (format!("benchsite{tag}"), format!("benchrobot{tag}"));
     let _router = StorageRouter::start(&endpoint, &MapKeys::new(&site_id)?, WAIT)?;
-    let mut site_config = client_config(&site_id, &endpoint);
+    let mut site_config = daemon_config(&site_id, &endpoint);
     site_config.fleet.role = FleetRole::Site;
     let _site_daemon = Daemon::builder(site_config).start()?;
-    let mut robot_config = client_config(&robot_id, &endpoint);
+    let mut robot_config = daemon_config(&robot_id, &endpoint);
     robot_config.fleet.site = site_id.clone();
     robot_config.fleet.tile_period_ms = 100;
     robot_config.ingest.service_name = format!("rangegp/{robot_id}/scans");

@@ -1,9 +1,10 @@
 //! The site map: every robot's latest tiles, fused cell by cell by inverse variance, held as a
 //! world aggregate so that a site answers with the same code (and the same numbers) as a robot.
 
+use crate::map::aggregate::sources::{Robots, SiteSources};
 use crate::map::aggregate::world::{Cell, TileCells, WorldAggregate, WorldParams};
 use crate::map::aggregate::AggregateError;
-use rangegp_proto::fleet::{RobotCell, RobotTiles, TileUpdate};
+use rangegp_proto::fleet::{RobotTiles, TileUpdate};
 use rangegp_proto::keys::MapKeys;
 use rangegp_proto::PROTOCOL_VERSION;
 use std::collections::{BTreeMap, BTreeSet};
@@ -46,40 +47,6 @@ pub const MAX_ABS_Z_M: f64 = 20_000.0;
 /// smaller one would let one robot's cell outweigh every other's, and a subnormal one overflows
 /// the fused precision).
 pub const MIN_VAR_M2: f64 = 1e-12;
-
-/// Every robot's latest tiles, by robot id and tile index (shared: a copy for queries costs a
-/// pointer per tile).
-type Robots = BTreeMap<String, BTreeMap<(i32, i32), Arc<TileUpdate>>>;
-
-/// Whose cells the site's answers fuse: every robot's latest tiles, as queries see them.
-#[derive(Debug, Clone)]
-pub struct SiteSources {
-    params: WorldParams,
-    robots: Robots,
-}
-
-impl SiteSources {
-    /// Each robot's own cell under map (x, y), in robot-id order.
-    pub fn at(&self, x: f64, y: f64) -> Vec<RobotCell> {
-        let (cell_m, n) = (self.params.cell_m, self.params.tile_cells);
-        let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
-        let key = (c.0.div_euclid(n), c.1.div_euclid(n));
-        self.robots
-            .iter()
-            .filter_map(|(robot, tiles)| {
-                let tile = tiles.get(&key)?;
-                let cell = tile.cells.iter().find(|t| (t.column, t.row) == c)?;
-                Some(RobotCell {
-                    robot: robot.clone(),
-                    z_m: cell.z_m,
-                    var_m2: cell.var_m2,
-                    scans: cell.scans,
-                    newest_scan_ns: tile.newest_scan_ns,
-                })
-            })
-            .collect()
-    }
-}
 
 /// Every robot's latest tiles and the aggregate fused from them.
 #[derive(Debug, Clone)]
@@ -207,10 +174,7 @@ impl SiteMap {
 
     /// Whose cells the answers fuse, for `query/sources`.
     pub fn sources(&self) -> SiteSources {
-        SiteSources {
-            params: self.params,
-            robots: self.robots.clone(),
-        }
+        SiteSources::new(self.params, self.robots.clone())
     }
 
     /// Per robot: tiles and cells held, and the newest scan they reflect (`alive` false: the

@@ -4,9 +4,11 @@
 //!   reproduce the paper's number.
 //! - [`world::WorldAggregate`]: the project's map, tiled elevation-GP experts over fused
 //!   per-cell heights predicted by each scan's range GP, updated incrementally.
+//! - [`sources::SiteSources`]: on a site daemon, whose cells (which robots') its answers fuse.
 
 pub mod ledger;
 pub mod pose_gp;
+pub mod sources;
 pub mod world;
 
 use super::local::{HeightEstimate, LocalRangeMap};
