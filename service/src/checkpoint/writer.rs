@@ -7,7 +7,7 @@ use crate::map::aggregate::Aggregate;
 use crate::state::DaemonState;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::time::Instant;
 use tracing::{debug, info_span, warn};
 
 /// Writes the aggregate of a [`DaemonState`] when it changed since the last write.
@@ -56,9 +56,7 @@ impl Writer {
         let started = Instant::now();
         let kernel = **state.kernel.load();
         let checkpoint = Checkpoint {
-            created_unix_ns: SystemTime::now()
-                .duration_since(UNIX_EPOCH)
-                .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)),
+            created_unix_ns: crate::metrics::unix_now_ns(),
             kernel_variance: kernel.variance,
             length_scale: kernel.length_scale,
             world: world.state(),

@@ -178,13 +178,6 @@ pub struct Outgoing {
     pub bytes: Vec<u8>,
 }
 
-/// Wall-clock now, ns since the Unix epoch (0 before it).
-pub(crate) fn wall_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
 /// Hash of a tile's cells, bit for bit.
 fn hash(cells: &[((i32, i32), Cell)]) -> u64 {
     let mut h = DefaultHasher::new();
@@ -237,7 +230,7 @@ pub fn publish_loop(
         ledger.scan(&world, departures.take(), Instant::now());
         let (mut tiles, mut bytes) = (0u64, 0u64);
         if reachable {
-            for outgoing in ledger.take(&world, robot.map_id(), budget, wall_ns()) {
+            for outgoing in ledger.take(&world, robot.map_id(), budget, crate::metrics::unix_now_ns()) {
                 if shutdown.is_triggered() {
                     ledger.retry(outgoing, Instant::now());
                     continue;

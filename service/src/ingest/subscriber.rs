@@ -226,7 +226,7 @@ impl Intake {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
                     let received = Instant::now();
-                    let now_ns = unix_now_ns();
+                    let now_ns = crate::metrics::unix_now_ns();
                     let header = *sample.user_header();
                     let source = Source {
                         publisher_id: header.publisher_id,
@@ -356,13 +356,6 @@ struct Received {
     source: Source,
     received: Instant,
     now_ns: u64,
-}
-
-/// This machine's clock, nanoseconds since the Unix epoch (0 if it is set before 1970).
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
 }
 
 fn log_cleanup(state: iceoryx2::node::CleanupState) {

@@ -267,3 +267,11 @@ pub fn rss_mb() -> Option<f64> {
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
 }
+
+/// This machine's clock, nanoseconds since the Unix epoch (0 if it is set before 1970): the one
+/// wall-clock reading of the daemon (scan ages, checkpoint and tile stamps).
+pub fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}

@@ -166,11 +166,9 @@ fn own_cell(state: &DaemonState, snap: &crate::map::MapSnapshot, x: f64, y: f64)
     let Some(world) = &snap.aggregate else {
         return Vec::new();
     };
-    let cell_m = world.params().cell_m;
-    let c = ((x / cell_m).floor() as i32, (y / cell_m).floor() as i32);
     world
         .cells()
-        .get(&c)
+        .get(&world.cell_of(x, y))
         .map(|cell| RobotCell {
             robot: state.keys.map_id().to_owned(),
             z_m: cell.z,

@@ -893,7 +893,8 @@ impl WorldAggregate {
         )
     }
 
-    fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
+    /// The index (column, row) of the cell holding map (x, y).
+    pub fn cell_of(&self, x: f64, y: f64) -> (i32, i32) {
         (
             (x / self.params.cell_m).floor() as i32,
             (y / self.params.cell_m).floor() as i32,
