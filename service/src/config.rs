@@ -326,10 +326,11 @@ pub struct AggregateConfig {
     /// scan takes 8 bytes per cell of the square its reach spans (a 6 m reach: 18 KiB); the
     /// oldest leave first, and a correction naming a forgotten scan counts it not correctable.
     pub ledger_mib: usize,
-    /// Detect moving objects and changes: cells whose new evidence disagrees with the old beyond
-    /// both σ are replaced, not averaged, and announced on `events/change`. Off by default:
-    /// odometry drift looks like change where the robot returns, and a later pose correction
-    /// does not restore cells replaced then.
+    /// Detect moving objects and changes: cells whose returns disagree with what earlier
+    /// returns measured beyond both σ are replaced, not averaged, and announced on
+    /// `events/change`; predictions that disagree are left out. Off by default: under odometry
+    /// drift the map disagrees with itself where the robot returns, and a later pose correction
+    /// does not restore cells replaced then (docs/EVALUATION.md "World").
     pub change_detection: bool,
 }
 

@@ -1,14 +1,17 @@
-//! `rangegp-eval world --quick` in CI. Bars the issue sets and the quick form meets are checked as
-//! bars: a deskewed sweep within 10 % of a static scan (and better than ignoring the motion); a
-//! drive mapped with drifting odometry, once corrected, within 10 % of the drive mapped with the
-//! true poses. The change-detection bars are not all met yet (docs/EVALUATION.md "World"): the
-//! quick form guards the levels measured so that they do not regress.
+//! `rangegp-eval world --quick` in CI, held to the issue's bars: a deskewed sweep within 10 % of a
+//! static scan (and better than ignoring the motion); a drive mapped with drifting odometry, once
+//! corrected, within 10 % of the drive mapped with the true poses; change precision and recall of
+//! at least 0.9 with a box on gentle and on rough relief, the removed box gone within 3 scans that
+//! see its ground, and the static pass all but silent.
 
-use rangegp_lab::eval::world::{run_world, CORRECTED_OVER_FREE_MAX, DESKEW_OVER_STATIC_MAX};
+use rangegp_lab::eval::world::{
+    run_world, CHANGE_MIN, CLEAR_WITHIN_SCANS, CORRECTED_OVER_FREE_MAX, DESKEW_OVER_STATIC_MAX,
+    STATIC_CHANGE_MAX_FRACTION,
+};
 use rangegp_lab::eval::FamilyOptions;
 
 #[test]
-fn quick_world_meets_the_deskew_and_correction_bars_and_keeps_its_change_levels() -> anyhow::Result<()> {
+fn quick_world_meets_the_deskew_correction_and_change_bars() -> anyhow::Result<()> {
     let r = run_world(&FamilyOptions::quick())?;
     assert!(r.points > 500, "{} deskew points", r.points);
     assert!(
@@ -33,11 +36,15 @@ fn quick_world_meets_the_deskew_and_correction_bars_and_keeps_its_change_levels(
         "{:?}",
         d.timing
     );
-    // Change levels of the quick case (a 0.5 m box on gentle fBm), measured 2026-11-24:
-    // precision 1.000, recall 0.987, cleared after 4 scans, no change on the static pass.
+    // The quick cases: a 0.5 m box on fBm 8° and on fBm 16° (where the first method's precision
+    // was 0.6), passes at 1 m.
     let c = &r.change;
-    assert!(c.precision >= 0.95 && c.recall >= 0.9, "{c:?}");
-    assert!(c.scans_to_clear.is_some_and(|n| n <= 5), "{c:?}");
-    assert!(c.static_changes <= 5, "{c:?}");
+    assert!(c.precision >= CHANGE_MIN && c.recall >= CHANGE_MIN, "{c:?}");
+    assert!(c.scans_to_clear.is_some_and(|n| n <= CLEAR_WITHIN_SCANS), "{c:?}");
+    assert!(
+        c.static_changes as f64 <= STATIC_CHANGE_MAX_FRACTION * c.static_cells as f64,
+        "{c:?}"
+    );
+    assert!(r.failures.is_empty(), "{:?}", r.failures);
     Ok(())
 }

@@ -8,6 +8,7 @@
 
 pub mod ledger;
 pub mod pose_gp;
+pub mod returns;
 pub mod sources;
 pub mod world;
 

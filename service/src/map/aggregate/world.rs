@@ -10,6 +10,7 @@
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
+use super::returns::{CellReturns, Measured, Plane};
 use super::{Aggregate, AggregateError};
 use crate::gp::{CholeskyError, JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
@@ -49,8 +50,9 @@ pub struct WorldParams {
     /// sensor sees the ground at grazing angles (and the cells to visit grow as its square).
     /// The daemon may fuse a shorter reach to keep up with the sensor's rate.
     pub max_reach_m: f64,
-    /// Detect changes (moving objects): disagreeing evidence replaces cells instead of being
-    /// averaged in (off: every prediction is fused, as before issue 17). Off by default: under
+    /// Detect changes (moving objects): returns that disagree with what earlier returns measured
+    /// replace cells, and disagreeing predictions are left out instead of being averaged in
+    /// (off: every prediction is fused, as before issue 17). Off by default: under
     /// odometry drift the map disagrees with itself where the robot returns, which looks like
     /// change, and cells replaced then are not restored by a later pose correction
     /// (docs/EVALUATION.md "World").
@@ -62,8 +64,9 @@ pub struct WorldParams {
     /// makes of edges and steps, which no single scan's σ includes; changes smaller than a few
     /// times this are fused, not reported.
     pub change_floor_m: f64,
-    /// Scans that must agree with each other, and not with the cell, before the cell is replaced
-    /// by them (one scan's bad prediction is not a change).
+    /// Scans whose returns must agree with each other, and not with what earlier returns
+    /// measured in the cell, before the cell is replaced by them (one scan's stray returns are
+    /// not a change).
     pub change_confirm_scans: u32,
 }
 
@@ -230,9 +233,10 @@ pub struct WorldAggregate {
     challengers: HashMap<(i32, i32), Cell>,
     // The insert at which each replaced cell was replaced: older scans' evidence is gone from it.
     replaced_at: HashMap<(i32, i32), u64>,
-    // Cells whose height the returns measured when they replaced it: a range map's smooth guess
-    // that disagrees with them is left out (it rounds off the object they hit).
-    measured: BTreeSet<(i32, i32)>,
+    // Each cell's height as the scans' returns measured it (each scan's plane through its
+    // returns in the cell, fused): what a change is tested against. Not checkpointed: after a
+    // restart the cells themselves are the reference until returns come again.
+    returns: HashMap<(i32, i32), Measured>,
     // Shared so that a published copy costs the cells and one pointer per tile.
     tiles: HashMap<(i32, i32), Arc<ElevationGp>>,
     refits: u64,
@@ -252,7 +256,7 @@ impl WorldAggregate {
             cells: HashMap::new(),
             challengers: HashMap::new(),
             replaced_at: HashMap::new(),
-            measured: BTreeSet::new(),
+            returns: HashMap::new(),
             tiles: HashMap::new(),
             refits: 0,
             inserts: 0,
@@ -376,17 +380,17 @@ impl WorldAggregate {
         let reach_m = reach_m.min(self.params.max_reach_m);
         let mut fused = Vec::with_capacity(batch.len());
         for (scan, local) in batch {
-            let cells: Vec<(FusedCell, bool)> = self
+            let cells: Vec<FusedCell> = self
                 .predicted_cells(local, reach_m)
                 .into_iter()
                 // As the ledger keeps them, so that a correction takes out exactly what went in.
-                .map(|(c, e, observed)| ((c, e.z as f32, e.var as f32), observed))
-                .filter(|&((_, _, var), _)| var > 0.0)
+                .map(|(c, e)| (c, e.z as f32, e.var as f32))
+                .filter(|&(_, _, var)| var > 0.0)
                 .collect();
             let this = self.inserts;
             let mut kept = Vec::with_capacity(cells.len());
             let mut replaced = Vec::new();
-            // Rays that pass below a measured cell's surface: what stood there has left.
+            // Rays that pass below the returns' plane of a cell: what stood there has left.
             let watch = self.params.change_detection;
             let carved = if watch {
                 self.carved(scan, local, reach_m)
@@ -398,18 +402,27 @@ impl WorldAggregate {
             } else {
                 Vec::new()
             };
+            // Announced: what the world did (a correction of the map's own guess is not news).
+            let mut moved = Vec::new();
             for c in carved {
                 if let Some(change) = self.clear(c, local, this) {
                     replaced.push(change);
+                    moved.push(change);
                     dirty.extend(self.tiles_covering(c));
                 }
             }
-            // The scan's own returns: where they disagree with a cell, something moved.
-            for (c, seen) in returns {
-                if let Some(change) = self.challenge(c, seen, this, true) {
-                    replaced.push(change);
-                    dirty.extend(self.tiles_covering(c));
+            // The scan's own returns: where they disagree with what earlier returns measured
+            // there, something moved.
+            for (c, plane) in returns {
+                match self.challenge(c, plane, this) {
+                    Some(Replaced::Moved(change)) => {
+                        replaced.push(change);
+                        moved.push(change);
+                    }
+                    Some(Replaced::Corrected(change)) => replaced.push(change),
+                    None => continue,
                 }
+                dirty.extend(self.tiles_covering(c));
             }
             // A replaced cell's whole evidence is this scan's (for the ledger); its prediction
             // there is not fused again.
@@ -419,7 +432,7 @@ impl WorldAggregate {
                 }
             }
             let now_replaced: BTreeSet<(i32, i32)> = replaced.iter().map(|c| c.cell).collect();
-            for &((c, z, var), observed) in &cells {
+            for &(c, z, var) in &cells {
                 if now_replaced.contains(&c) {
                     continue;
                 }
@@ -428,11 +441,10 @@ impl WorldAggregate {
                     var: var as f64,
                     scans: 1,
                 };
-                match self.fuse(c, seen, this, observed) {
-                    Fusion::Fused => kept.push((c, z, var)),
-                    Fusion::Challenged | Fusion::Doubted => continue,
-                    Fusion::Replaced(change) => replaced.push(change),
+                if !self.fuse(c, seen) {
+                    continue;
                 }
+                kept.push((c, z, var));
                 dirty.extend(self.tiles_covering(c));
             }
             let mut raster = ScanRaster::new(
@@ -442,7 +454,7 @@ impl WorldAggregate {
             );
             raster.insert = this;
             fused.push(raster);
-            changes.push(replaced);
+            changes.push(moved);
             self.inserts += 1;
             if self.history.len() == HISTORY_LEN {
                 self.history.pop_front();
@@ -459,47 +471,57 @@ impl WorldAggregate {
         Ok((fused, changes))
     }
 
-    /// Folds one scan's height `seen` at cell `c` in (scan number `this`; `observed`: among the
-    /// scan's returns, not between them): fused by inverse variance when it agrees with the
-    /// cell; when it does not, held as a challenger if observed, else left out (a range map's
-    /// guess between its rings, or behind an object it just saw, is no evidence against what
-    /// other scans measured). A challenger confirmed by `change_confirm_scans` observed scans
-    /// that agree with each other replaces the cell; an observed scan that agrees with the cell
-    /// dismisses it.
-    fn fuse(&mut self, c: (i32, i32), seen: Cell, this: u64, observed: bool) -> Fusion {
+    /// Folds one scan's predicted height `seen` at cell `c` in, by inverse variance, and says
+    /// whether it did: with change detection on, a prediction that disagrees with the cell is
+    /// left out instead. Predictions never replace a cell: a range map's height between its
+    /// rings, behind an edge or at a rim depends on where it was seen from, so two views of an
+    /// unchanged world disagree there (on rough relief that was most of the false changes);
+    /// only returns measure a change ([`Self::challenge`]).
+    fn fuse(&mut self, c: (i32, i32), seen: Cell) -> bool {
         let Some(cell) = self.cells.get(&c).copied() else {
             self.cells.insert(c, seen);
-            return Fusion::Fused;
+            return true;
         };
-        if !self.params.change_detection || self.agree(&cell, &seen) {
-            self.cells.insert(c, fused(cell, seen));
-            if observed {
-                self.challengers.remove(&c);
-            }
-            return Fusion::Fused;
+        if self.params.change_detection && !self.agree(&cell, &seen) {
+            return false;
         }
-        if !observed || self.measured.contains(&c) {
-            return Fusion::Doubted;
-        }
-        match self.challenge(c, seen, this, false) {
-            Some(change) => Fusion::Replaced(change),
-            None => Fusion::Challenged,
-        }
+        self.cells.insert(c, fused(cell, seen));
+        true
     }
 
-    /// Holds `seen` against cell `c` (the caller found them disagreeing, or for `measured`
-    /// returns, tests it here): scans that reject the cell on the same side confirm each other,
-    /// and `change_confirm_scans` of them replace it. Returns the change when they do.
-    fn challenge(&mut self, c: (i32, i32), seen: Cell, this: u64, measured: bool) -> Option<Change> {
+    /// Tests one scan's returns in cell `c` (`plane`, through them) against what earlier returns
+    /// measured there (else against the cell): agreeing, they are fused into that reference and
+    /// dismiss a challenger they disagree with; disagreeing, they are held as a challenger, and
+    /// `change_confirm_scans` scans that reject the reference on the same side replace the cell.
+    /// Returns the replacement when they do: a move of the world when earlier returns were
+    /// contradicted (returns against returns compare like with like, neither smoothed by a range
+    /// map), a correction of the map when only predictions were.
+    fn challenge(&mut self, c: (i32, i32), plane: Plane, this: u64) -> Option<Replaced> {
         let cell = self.cells.get(&c).copied()?;
-        if measured && self.agree(&cell, &seen) {
-            if self.measured.contains(&c) {
+        let seen = Cell {
+            z: plane.z,
+            var: plane.var,
+            scans: 1,
+        };
+        let reference = self.returns.get(&c).map_or(cell, |r| r.cell);
+        let had_returns = self.returns.contains_key(&c);
+        if self.agree(&reference, &seen) {
+            let measured = self.returns.get(&c).map_or(seen, |r| fused(r.cell, seen));
+            self.returns.insert(
+                c,
+                Measured {
+                    cell: measured,
+                    slope: plane.slope,
+                },
+            );
+            // Returns too uncertain to tell the two apart dismiss nothing.
+            if self.challengers.get(&c).is_none_or(|ch| !self.agree(ch, &seen)) {
                 self.challengers.remove(&c);
             }
             return None;
         }
         let challenger = match self.challengers.get(&c) {
-            Some(ch) if (ch.z - cell.z).signum() == (seen.z - cell.z).signum() => fused(*ch, seen),
+            Some(ch) if (ch.z - reference.z).signum() == (seen.z - reference.z).signum() => fused(*ch, seen),
             _ => seen,
         };
         if challenger.scans < self.params.change_confirm_scans {
@@ -512,34 +534,38 @@ impl WorldAggregate {
         // scan alone: the challengers may have been sent from other, differently wrong poses).
         let challenger = f32_cell(seen);
         self.cells.insert(c, challenger);
+        self.returns.insert(
+            c,
+            Measured {
+                cell: seen,
+                slope: plane.slope,
+            },
+        );
         self.replaced_at.insert(c, this);
-        if measured {
-            self.measured.insert(c);
-        } else {
-            self.measured.remove(&c);
-        }
         let (x_m, y_m) = self.centre(c);
-        Some(Change {
+        let change = Change {
             cell: c,
             x_m,
             y_m,
             old: cell,
             new: challenger,
+        };
+        Some(if had_returns {
+            Replaced::Moved(change)
+        } else {
+            Replaced::Corrected(change)
         })
     }
 
-    /// The measured cells (see `measured`) that rays of the scan passed below, by a margin of
-    /// the gate: each ray walked from the sensor to its return, cell by cell (every other ray:
-    /// neighbouring rays cross the same cells).
+    /// The cells whose returns' plane rays of the scan passed below, where they crossed them,
+    /// by [`CLEAR_MARGIN_M`] and 2 σ of the plane: each ray walked from the sensor to its return,
+    /// cell by cell (every other ray: neighbouring rays cross the same cells). A ray is free
+    /// space: whatever the returns hit there is gone.
     fn carved(&self, scan: &ScanInput, local: &LocalRangeMap, reach_m: f64) -> BTreeSet<(i32, i32)> {
         let mut carved = BTreeSet::new();
-        let (Some(lo), Some(hi)) = (self.measured.first(), self.measured.last()) else {
+        if self.returns.is_empty() {
             return carved;
-        };
-        let (jlo, jhi) = self
-            .measured
-            .iter()
-            .fold((i32::MAX, i32::MIN), |(a, b), c| (a.min(c.1), b.max(c.1)));
+        }
         let pose = local.pose();
         let s = pose.translation.vector;
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
@@ -558,12 +584,10 @@ impl WorldAggregate {
             while t < end {
                 let p = s + d * t;
                 let c = self.cell_of(p.x, p.y);
-                if c >= *lo && c <= *hi && (jlo..=jhi).contains(&c.1) && self.measured.contains(&c) {
-                    if let Some(cell) = self.cells.get(&c) {
-                        let margin = CLEAR_MARGIN_M + 2.0 * cell.var.sqrt();
-                        if p.z < cell.z - margin {
-                            carved.insert(c);
-                        }
+                if let Some(m) = self.returns.get(&c) {
+                    let (cx, cy) = self.centre(c);
+                    if p.z < m.at(p.x - cx, p.y - cy) - CLEAR_MARGIN_M - 2.0 * m.cell.var.sqrt() {
+                        carved.insert(c);
                     }
                 }
                 t += step / flat;
@@ -572,9 +596,9 @@ impl WorldAggregate {
         carved
     }
 
-    /// A measured cell that a scan's rays passed below (one scan is enough: a ray went through
-    /// where something stood) takes the scan's own height there, or leaves the map where the
-    /// scan has none.
+    /// A cell that a scan's rays passed below (one scan is enough: a ray went through where
+    /// something stood) takes the scan's own height there, or leaves the map where the scan has
+    /// none; unless that height agrees with what the returns measured there.
     fn clear(&mut self, c: (i32, i32), local: &LocalRangeMap, this: u64) -> Option<Change> {
         let cell = self.cells.get(&c).copied()?;
         let (x_m, y_m) = self.centre(c);
@@ -588,8 +612,14 @@ impl WorldAggregate {
                     scans: 1,
                 })
             });
+        // The scan's own height there must disagree too: a plane through a crater's rim, carried
+        // across the cell, stands above ground the rays legitimately graze.
+        let reference = self.returns.get(&c).map_or(cell, |m| m.cell);
+        if height.is_some_and(|h| self.agree(&reference, &h)) {
+            return None;
+        }
         self.challengers.remove(&c);
-        self.measured.remove(&c);
+        self.returns.remove(&c);
         self.replaced_at.insert(c, this);
         let new = match height {
             Some(h) => {
@@ -615,18 +645,20 @@ impl WorldAggregate {
     }
 
     /// The scan's returns within `reach_m` binned by cell, where a cell holds at least two: the
-    /// highest (a 2.5-D map's surface is the top of what stands there) with the mean of their
-    /// range variances.
+    /// height at the cell's centre of a plane through them, with its variance (their noise, or
+    /// their scatter about the plane where larger, through the fit: [`CellReturns`]). The
+    /// highest return, used before, read a sloping cell differently from every view, and the
+    /// top of many noisy returns lies above the ground by a couple of σ.
     fn returns_by_cell(
         &self,
         scan: &ScanInput,
         local: &LocalRangeMap,
         reach_m: f64,
-    ) -> Vec<((i32, i32), Cell)> {
+    ) -> Vec<((i32, i32), Plane)> {
         let pose = local.pose();
         let s = pose.translation.vector;
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
-        let mut bins: HashMap<(i32, i32), (u32, f64, f64)> = HashMap::new();
+        let mut bins: HashMap<(i32, i32), CellReturns> = HashMap::new();
         for r in &scan.rays {
             let (si, ci) = r.inclination.sin_cos();
             let (sa, ca) = r.azimuth.sin_cos();
@@ -635,23 +667,13 @@ impl WorldAggregate {
                 continue;
             }
             let sd = scan.range_noise_per_m * r.range;
-            let bin = bins
-                .entry(self.cell_of(p.x, p.y))
-                .or_insert((0, f64::NEG_INFINITY, 0.0));
-            *bin = (bin.0 + 1, bin.1.max(p.z), bin.2 + sd * sd);
+            let c = self.cell_of(p.x, p.y);
+            let (cx, cy) = self.centre(c);
+            bins.entry(c).or_default().add(p.x - cx, p.y - cy, p.z, sd * sd);
         }
         bins.into_iter()
-            .filter(|(_, (n, _, _))| *n >= 2)
-            .map(|(c, (n, z, var))| {
-                (
-                    c,
-                    Cell {
-                        z,
-                        var: (var / n as f64).max(1e-8),
-                        scans: 1,
-                    },
-                )
-            })
+            .filter(|(_, b)| b.count() >= 2)
+            .filter_map(|(c, b)| Some((c, b.plane()?)))
             .collect()
     }
 
@@ -686,6 +708,8 @@ impl WorldAggregate {
                 continue;
             }
             applied.cells_changed += 1;
+            // The returns measured there moved with their scans.
+            self.returns.remove(&c);
             let own = self.tile_of(c);
             let covering: Vec<(i32, i32)> = self.tiles_covering(c).collect();
             if !on_disk(self, own) {
@@ -710,11 +734,7 @@ impl WorldAggregate {
     /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
     /// sensor whose height it predicts surely enough to fuse (σ ≤ `max_cell_sd_m`), in parallel
     /// on the current rayon pool.
-    fn predicted_cells(
-        &self,
-        local: &LocalRangeMap,
-        reach_m: f64,
-    ) -> Vec<((i32, i32), HeightEstimate, bool)> {
+    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<((i32, i32), HeightEstimate)> {
         let s = local.sensor_position();
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
         let (lo, hi) = (
@@ -735,10 +755,7 @@ impl WorldAggregate {
                 let e = local
                     .elevation(x, y)
                     .filter(|e| e.var <= max_var && e.var > 0.0)?;
-                // Only the change test asks (an O(n) search over the covering experts' inputs).
-                let observed = self.params.change_detection
-                    && local.provenance(&Vector3::new(x, y, e.z)) == Provenance::Observed;
-                Some((c, e, observed))
+                Some((c, e))
             })
             .collect()
     }
@@ -799,7 +816,7 @@ impl WorldAggregate {
         let cells = &self.cells;
         self.challengers.retain(|c, _| cells.contains_key(c));
         self.replaced_at.retain(|c, _| cells.contains_key(c));
-        self.measured.retain(|c| cells.contains_key(c));
+        self.returns.retain(|c, _| cells.contains_key(c));
         let mut pages: Vec<TilePage> = pages.into_values().collect();
         for page in &mut pages {
             page.cells.sort_by_key(|&(k, _)| k);
@@ -1081,22 +1098,21 @@ impl WorldAggregate {
     }
 }
 
-/// What folding a scan's height into a cell did.
-enum Fusion {
-    /// Fused with the cell (or made it).
-    Fused,
-    /// Held against the cell, awaiting confirmation.
-    Challenged,
-    /// Disagreed with the cell without being observed: left out.
-    Doubted,
-    /// Replaced the cell.
-    Replaced(Change),
+/// A cell the returns replaced.
+#[derive(Debug, Clone, Copy)]
+enum Replaced {
+    /// They contradicted what earlier returns measured there: the world moved (announced).
+    Moved(Change),
+    /// They corrected a height only range maps had predicted: the map was wrong, not the
+    /// world (not announced; on rough relief these were nearly all the false changes).
+    Corrected(Change),
 }
 
-/// A ray clears a measured cell when it passes this far below its surface, plus 2 σ of it,
-/// metres (less than the change gate: a ray is a line, not a guess, and a cell's returns are its
-/// highest).
-const CLEAR_MARGIN_M: f64 = 0.1;
+/// A ray clears a cell when it passes this far below its returns' plane where it
+/// crosses the cell, plus 2 σ of the plane's height, metres (less than the change gate: a ray
+/// is a line, not a guess; 0.1 m against the cell's centre height left the low edge of a
+/// removed object standing for a whole pass, its grazing rays never that far below).
+const CLEAR_MARGIN_M: f64 = 0.05;
 
 /// A cell as the ledger keeps heights (f32), so that a correction takes out exactly this.
 fn f32_cell(c: Cell) -> Cell {
