@@ -42,8 +42,8 @@ pub struct ChangeReport {
     /// Truly changed cells the aggregate held before the pass, that the pass saw in at least
     /// the scans a change needs, and that were not reported.
     pub missed: [usize; 2],
-    /// After the object left, the most scans that saw one of its cells' ground before that
-    /// cell stood no more than 10 cm above the ground (`None`: some cell still stood at the end
+    /// After the object left, the most scans that had seen one of its cells' ground by the scan
+    /// after which that cell first stood no more than 10 cm above the ground (`None`: some cell still stood at the end
     /// of the pass).
     pub scans_to_clear: Option<usize>,
     /// The first definition: scans that saw any of the object's ground until none of it stood.

@@ -411,9 +411,14 @@ impl WorldAggregate {
                     dirty.extend(self.tiles_covering(c));
                 }
             }
+            // A cell is replaced once per scan (the ledger keeps one height of it per scan).
+            let cleared: BTreeSet<(i32, i32)> = moved.iter().map(|c| c.cell).collect();
             // The scan's own returns: where they disagree with what earlier returns measured
             // there, something moved.
             for (c, plane) in returns {
+                if cleared.contains(&c) {
+                    continue;
+                }
                 match self.challenge(c, plane, this) {
                     Some(Replaced::Moved(change)) => {
                         replaced.push(change);
@@ -702,15 +707,15 @@ impl WorldAggregate {
     ) -> Result<Applied, AggregateError> {
         let mut dirty = BTreeSet::new();
         let mut applied = Applied::default();
+        let mut edited_tiles = BTreeSet::new();
         let on_disk = |agg: &Self, t: (i32, i32)| !agg.tiles.contains_key(&t) && paged(t);
         for (c, edit) in edits {
             if edit == CellEdit::default() {
                 continue;
             }
             applied.cells_changed += 1;
-            // The returns measured there moved with their scans.
-            self.returns.remove(&c);
             let own = self.tile_of(c);
+            edited_tiles.insert(own);
             let covering: Vec<(i32, i32)> = self.tiles_covering(c).collect();
             if !on_disk(self, own) {
                 match edit.apply(self.cells.get(&c).copied()) {
@@ -726,6 +731,15 @@ impl WorldAggregate {
                 }
             }
         }
+        // What returns measured, and the challengers they hold, moved with their scans; a scan's
+        // returns also fed cells its prediction was left out of (no edit names those), so every
+        // reference in a tile the correction edited goes: the cells are the reference until
+        // returns come again.
+        let n = self.params.tile_cells;
+        let tile_of = |c: &(i32, i32)| (c.0.div_euclid(n), c.1.div_euclid(n));
+        self.returns.retain(|c, _| !edited_tiles.contains(&tile_of(c)));
+        self.challengers
+            .retain(|c, _| !edited_tiles.contains(&tile_of(c)));
         applied.tiles_refitted = dirty.len();
         self.refit(dirty)?;
         Ok(applied)
