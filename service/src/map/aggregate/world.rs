@@ -416,10 +416,7 @@ impl WorldAggregate {
             // The scan's own returns: where they disagree with what earlier returns measured
             // there, something moved.
             for (c, plane) in returns {
-                if cleared.contains(&c) {
-                    continue;
-                }
-                match self.challenge(c, plane, this) {
+                match self.challenge(c, plane, this, cleared.contains(&c)) {
                     Some(Replaced::Moved(change)) => {
                         replaced.push(change);
                         moved.push(change);
@@ -497,11 +494,12 @@ impl WorldAggregate {
     /// Tests one scan's returns in cell `c` (`plane`, through them) against what earlier returns
     /// measured there (else against the cell): agreeing, they are fused into that reference and
     /// dismiss a challenger they disagree with; disagreeing, they are held as a challenger, and
-    /// `change_confirm_scans` scans that reject the reference on the same side replace the cell.
+    /// `change_confirm_scans` scans that reject the reference on the same side replace the cell
+    /// (not when rays of this scan, `cleared`, just did).
     /// Returns the replacement when they do: a move of the world when earlier returns were
     /// contradicted (returns against returns compare like with like, neither smoothed by a range
     /// map), a correction of the map when only predictions were.
-    fn challenge(&mut self, c: (i32, i32), plane: Plane, this: u64) -> Option<Replaced> {
+    fn challenge(&mut self, c: (i32, i32), plane: Plane, this: u64, cleared: bool) -> Option<Replaced> {
         let cell = self.cells.get(&c).copied()?;
         let seen = Cell {
             z: plane.z,
@@ -529,7 +527,7 @@ impl WorldAggregate {
             Some(ch) if (ch.z - reference.z).signum() == (seen.z - reference.z).signum() => fused(*ch, seen),
             _ => seen,
         };
-        if challenger.scans < self.params.change_confirm_scans {
+        if challenger.scans < self.params.change_confirm_scans || cleared {
             self.challengers.insert(c, challenger);
             return None;
         }
