@@ -43,8 +43,8 @@ pub struct ChangeReport {
     /// the scans a change needs, and that were not reported.
     pub missed: [usize; 2],
     /// After the object left, the most scans that had seen one of its cells' ground by the scan
-    /// after which that cell first stood no more than 10 cm above the ground (`None`: some cell still stood at the end
-    /// of the pass).
+    /// after which that cell first stood no more than 10 cm above the ground (`None`: some cell
+    /// still stood at the end of the pass).
     pub scans_to_clear: Option<usize>,
     /// The first definition: scans that saw any of the object's ground until none of it stood.
     /// It counts from the first scan that sees a near corner, which, 10 m off, cannot yet reach

@@ -182,7 +182,7 @@ impl TilePage {
             .collect();
         let mut cells: BTreeMap<(i32, i32), Cell> = self.cells.iter().copied().collect();
         for &(c, edit) in edits {
-            let after = if (c.0.div_euclid(n), c.1.div_euclid(n)) == self.key {
+            let after = if tile_of(c, n) == self.key {
                 let after = edit.apply(cells.get(&c).copied());
                 match after {
                     Some(cell) => cells.insert(c, cell),
@@ -506,10 +506,10 @@ impl WorldAggregate {
             var: plane.var,
             scans: 1,
         };
-        let reference = self.returns.get(&c).map_or(cell, |r| r.cell);
-        let had_returns = self.returns.contains_key(&c);
+        let earlier = self.returns.get(&c).map(|r| r.cell);
+        let reference = earlier.unwrap_or(cell);
         if self.agree(&reference, &seen) {
-            let measured = self.returns.get(&c).map_or(seen, |r| fused(r.cell, seen));
+            let measured = earlier.map_or(seen, |r| fused(r, seen));
             self.returns.insert(
                 c,
                 Measured {
@@ -553,7 +553,7 @@ impl WorldAggregate {
             old: cell,
             new: challenger,
         };
-        Some(if had_returns {
+        Some(if earlier.is_some() {
             Replaced::Moved(change)
         } else {
             Replaced::Corrected(change)
@@ -734,10 +734,10 @@ impl WorldAggregate {
         // reference in a tile the correction edited goes: the cells are the reference until
         // returns come again.
         let n = self.params.tile_cells;
-        let tile_of = |c: &(i32, i32)| (c.0.div_euclid(n), c.1.div_euclid(n));
-        self.returns.retain(|c, _| !edited_tiles.contains(&tile_of(c)));
+        self.returns
+            .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         self.challengers
-            .retain(|c, _| !edited_tiles.contains(&tile_of(c)));
+            .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         applied.tiles_refitted = dirty.len();
         self.refit(dirty)?;
         Ok(applied)
@@ -815,16 +815,14 @@ impl WorldAggregate {
             })
             .collect();
         self.tiles.retain(|t, _| !gone.contains(t));
-        self.cells.retain(|&(i, j), cell| {
-            let tile = (i.div_euclid(n), j.div_euclid(n));
-            match pages.get_mut(&tile) {
+        self.cells
+            .retain(|&(i, j), cell| match pages.get_mut(&tile_of((i, j), n)) {
                 Some(page) => {
                     page.cells.push(((i, j), *cell));
                     false
                 }
                 None => true,
-            }
-        });
+            });
         let cells = &self.cells;
         self.challengers.retain(|c, _| cells.contains_key(c));
         self.replaced_at.retain(|c, _| cells.contains_key(c));
@@ -930,11 +928,8 @@ impl WorldAggregate {
         )
     }
 
-    fn tile_of(&self, (i, j): (i32, i32)) -> (i32, i32) {
-        (
-            i.div_euclid(self.params.tile_cells),
-            j.div_euclid(self.params.tile_cells),
-        )
+    fn tile_of(&self, c: (i32, i32)) -> (i32, i32) {
+        tile_of(c, self.params.tile_cells)
     }
 
     /// Tiles whose grown box contains cell `c`.
@@ -1125,6 +1120,11 @@ enum Replaced {
 /// is a line, not a guess; 0.1 m against the cell's centre height left the low edge of a
 /// removed object standing for a whole pass, its grazing rays never that far below).
 const CLEAR_MARGIN_M: f64 = 0.05;
+
+/// The tile (column, row) of tiles `tile_cells` cells on a side that holds cell `c`.
+fn tile_of((i, j): (i32, i32), tile_cells: i32) -> (i32, i32) {
+    (i.div_euclid(tile_cells), j.div_euclid(tile_cells))
+}
 
 /// A cell as the ledger keeps heights (f32), so that a correction takes out exactly this.
 fn f32_cell(c: Cell) -> Cell {
