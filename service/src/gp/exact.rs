@@ -111,13 +111,15 @@ impl<const D: usize> ExactGp<D> {
 
     /// Euclidean distance from `x` to the nearest training input (O(n); infinite without any).
     pub fn nearest_input_distance(&self, x: &[f64; D]) -> f64 {
-        let mut d2 = vec![0.0; self.inputs.len()];
-        for (k, xk) in x.iter().enumerate() {
-            for (d, c) in d2.iter_mut().zip(self.inputs.coord(k)) {
-                *d += (c - xk) * (c - xk);
-            }
-        }
-        d2.into_iter().fold(f64::INFINITY, f64::min).sqrt()
+        let coords: [&[f64]; D] = std::array::from_fn(|k| self.inputs.coord(k));
+        (0..self.inputs.len())
+            .map(|i| {
+                x.iter()
+                    .zip(&coords)
+                    .fold(0.0, |d, (xk, c)| d + (c[i] - xk) * (c[i] - xk))
+            })
+            .fold(f64::INFINITY, f64::min)
+            .sqrt()
     }
 
     /// Posterior mean and latent variance k(x,x) − ‖L⁻¹ k*‖² at `x` (O(n²)); never negative.

@@ -198,22 +198,28 @@ pub fn cell_layers(
     if !grid.z[centre].is_finite() {
         return None;
     }
-    let mut known: Vec<usize> = Vec::with_capacity(stencil.len());
-    let mut z = Vec::with_capacity(stencil.len());
-    let mut sd = Vec::with_capacity(stencil.len());
+    let m = stencil.len();
+    let mut known: Vec<usize> = Vec::with_capacity(m);
+    // Per footprint cell: height, σ, and the weights on σ-scaled heights of the gradient's two
+    // components and of the roughness (zero where the cell is unknown).
+    let mut buf = vec![0.0; 5 * m];
+    let (z, rest) = buf.split_at_mut(m);
+    let (sd, rest) = rest.split_at_mut(m);
+    let (px, rest) = rest.split_at_mut(m);
+    let (py, pr) = rest.split_at_mut(m);
     for (k, &(di, dj)) in stencil.offsets.iter().enumerate() {
         let Some(c) = at(col as i64 + i64::from(di), row as i64 + i64::from(dj)) else {
             continue;
         };
         if grid.z[c].is_finite() && grid.sd[c].is_finite() {
             known.push(k);
-            z.push(grid.z[c]);
-            sd.push(grid.sd[c].max(0.0));
+            z[k] = grid.z[c];
+            sd[k] = grid.sd[c].max(0.0);
         }
     }
     let n = known.len();
-    let unknown_risk = 1.0 - n as f64 / stencil.len() as f64;
-    if n < 3 || (n as f64) < MIN_KNOWN_SHARE * stencil.len() as f64 {
+    let unknown_risk = 1.0 - n as f64 / m as f64;
+    if n < 3 || (n as f64) < MIN_KNOWN_SHARE * m as f64 {
         return None;
     }
     // Least-squares plane z = a + gx u + gy v; rows of (XᵀX)⁻¹Xᵀ give gx and gy as weights on z.
@@ -224,44 +230,42 @@ pub fn cell_layers(
     }
     let inv = xtx.try_inverse()?;
     let mut coef = Vector3::zeros();
-    let mut wx = Vec::with_capacity(n);
-    let mut wy = Vec::with_capacity(n);
-    for (idx, &k) in known.iter().enumerate() {
+    for &k in &known {
         let w = inv * Vector3::new(1.0, stencil.uv[k].0, stencil.uv[k].1);
-        coef += w * z[idx];
-        wx.push(w.y);
-        wy.push(w.z);
+        coef += w * z[k];
+        px[k] = w.y * sd[k];
+        py[k] = w.z * sd[k];
     }
     let (gx, gy) = (coef.y, coef.z);
-    let m = stencil.len();
-    let residuals: Vec<f64> = known
-        .iter()
-        .enumerate()
-        .map(|(idx, &k)| z[idx] - (coef.x + gx * stencil.uv[k].0 + gy * stencil.uv[k].1))
-        .collect();
-    let roughness = (residuals.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+    let mut sum_r2 = 0.0;
+    for &k in &known {
+        let r = z[k] - (coef.x + gx * stencil.uv[k].0 + gy * stencil.uv[k].1);
+        pr[k] = r;
+        sum_r2 += r * r;
+    }
+    let roughness = (sum_r2 / n as f64).sqrt();
     // Roughness as a linear functional of the heights near its value: weights r / (n · rms).
-    let wr: Vec<f64> = if roughness > 1e-12 {
-        residuals.iter().map(|r| r / (n as f64 * roughness)).collect()
+    let scale = if roughness > 1e-12 {
+        1.0 / (n as f64 * roughness)
     } else {
-        vec![0.0; n]
+        0.0
     };
-    // The covariances of the gradient's two components and of the roughness, Σ pₐ σₐ Cₐᵦ σᵦ qᵦ,
-    // in one pass over the correlations (each row read once).
+    for &k in &known {
+        pr[k] *= scale * sd[k];
+    }
+    // The covariances of the gradient's two components and of the roughness, Σ pₐ Cₐᵦ pᵦ with
+    // p the σ-scaled weights, over the upper triangle of the symmetric correlations (each pair
+    // once: Cₐₐ pₐ² + 2 Σ_{b>a} pₐ Cₐᵦ pᵦ) of the known cells' rows (an unknown cell's weights
+    // are zero).
     let (mut vxx, mut vyy, mut vxy, mut vrr) = (0.0, 0.0, 0.0, 0.0);
-    for (a, &ka) in known.iter().enumerate() {
-        let row = &stencil.corr[ka * m..ka * m + m];
-        let (mut cx, mut cy, mut cr) = (0.0, 0.0, 0.0);
-        for (b, &kb) in known.iter().enumerate() {
-            let c = sd[b] * row[kb];
-            cx += wx[b] * c;
-            cy += wy[b] * c;
-            cr += wr[b] * c;
-        }
-        vxx += wx[a] * sd[a] * cx;
-        vyy += wy[a] * sd[a] * cy;
-        vxy += wx[a] * sd[a] * cy;
-        vrr += wr[a] * sd[a] * cr;
+    for &a in &known {
+        let row = &stencil.corr[a * m..a * m + m];
+        let (cx, cy, cr) = dot3(&row[a + 1..], &px[a + 1..], &py[a + 1..], &pr[a + 1..]);
+        let caa = row[a];
+        vxx += px[a] * (caa * px[a] + 2.0 * cx);
+        vyy += py[a] * (caa * py[a] + 2.0 * cy);
+        vxy += caa * px[a] * py[a] + px[a] * cy + py[a] * cx;
+        vrr += pr[a] * (caa * pr[a] + 2.0 * cr);
     }
     let g = gx.hypot(gy);
     let g_var = if g > 1e-12 {
@@ -278,17 +282,17 @@ pub fn cell_layers(
     let aspect = (-gy).atan2(-gx);
     let roughness_sd = vrr.max(0.0).sqrt();
 
-    let (mut hi, mut lo) = (0, 0);
-    for idx in 1..n {
-        if z[idx] > z[hi] {
-            hi = idx;
+    let (mut hi, mut lo) = (known[0], known[0]);
+    for &k in &known[1..] {
+        if z[k] > z[hi] {
+            hi = k;
         }
-        if z[idx] < z[lo] {
-            lo = idx;
+        if z[k] < z[lo] {
+            lo = k;
         }
     }
     let step = z[hi] - z[lo];
-    let rho = stencil.corr[known[hi] * m + known[lo]];
+    let rho = stencil.corr[hi * m + lo];
     let step_sd = (sd[hi] * sd[hi] + sd[lo] * sd[lo] - 2.0 * rho * sd[hi] * sd[lo])
         .max(0.0)
         .sqrt();
@@ -315,6 +319,28 @@ pub fn cell_layers(
         risk,
         traversal_cost,
     })
+}
+
+/// The dot products of `row` with `a`, `b` and `c` (equal lengths), four lanes at a time.
+fn dot3(row: &[f64], a: &[f64], b: &[f64], c: &[f64]) -> (f64, f64, f64) {
+    let mut acc = [[0.0; 4]; 3];
+    let n4 = row.len() / 4 * 4;
+    for i in (0..n4).step_by(4) {
+        for l in 0..4 {
+            let r = row[i + l];
+            acc[0][l] += a[i + l] * r;
+            acc[1][l] += b[i + l] * r;
+            acc[2][l] += c[i + l] * r;
+        }
+    }
+    let lanes = |v: [f64; 4]| (v[0] + v[1]) + (v[2] + v[3]);
+    let (mut x, mut y, mut z) = (lanes(acc[0]), lanes(acc[1]), lanes(acc[2]));
+    for i in n4..row.len() {
+        x += a[i] * row[i];
+        y += b[i] * row[i];
+        z += c[i] * row[i];
+    }
+    (x, y, z)
 }
 
 #[cfg(test)]

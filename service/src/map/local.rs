@@ -47,19 +47,20 @@ const MIN_INVERSE_RANGE: f64 = 1e-3;
 const FOV_STEP_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
 
 /// Bisections of each end of the field of view on a vertical line (in height: the bracket of
-/// one angular step, at most 2°, over 2¹⁴).
-const FOV_BISECTIONS: usize = 14;
+/// one angular step, at most 2°, over 2¹⁰: under 0.4 mm at 10 m).
+const FOV_BISECTIONS: usize = 10;
 
 /// The first-crossing search down the field of view's part of a vertical line steps at least
 /// 1 / ELEVATION_SAMPLES of it ...
 const ELEVATION_SAMPLES: usize = 24;
 
-/// ... and at most 1 / ELEVATION_SAMPLES_MIN of it.
+/// ... and at most 1 / ELEVATION_SAMPLES_MIN of it or [`ELEVATION_STEP_M`], whichever is longer.
 const ELEVATION_SAMPLES_MIN: usize = 4;
 
-/// How far past the flat-ground estimate of the crossing a step of that search goes (as a
-/// fraction of the estimate: 1.5 overshoots by half).
-const TRACE_OVERSHOOT: f64 = 1.5;
+/// The longest step of that search on a short stretch, metres: a long stretch's quarter steps
+/// over as much; a short one (near the sensor, where the field of view ends above the ground)
+/// need not be sampled finer than the rest.
+const ELEVATION_STEP_M: f64 = 0.25;
 
 impl RangeTarget {
     /// The modelled value of range `r`.
@@ -377,9 +378,10 @@ impl LocalRangeMap {
 
     fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {
         let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
-        // A point `g` short of the surface along its ray lies `g · sin(depression)` above where
-        // a flat surface below would cross the line: step that far and half as far again (the
-        // refinement takes the bracket); a ray looking up says nothing of the ground below.
+        // A point `g` short of the surface along its ray (or behind it, for a negative `g`) lies
+        // `g · sin(depression)` above where a flat surface below would cross the line: the
+        // trace's estimate of the distance left; a ray looking up says nothing of the ground
+        // below.
         let s = self.sensor_position();
         let rho2 = (x - s.x).powi(2) + (y - s.y).powi(2);
         let ahead = |t: f64, g: f64| {
@@ -387,10 +389,10 @@ impl LocalRangeMap {
             if below <= 0.0 {
                 return f64::INFINITY;
             }
-            TRACE_OVERSHOOT * -g * below / (below * below + rho2).sqrt()
+            -g * below / (below * below + rho2).sqrt()
         };
         let steps = (
-            span / ELEVATION_SAMPLES_MIN as f64,
+            (span / ELEVATION_SAMPLES_MIN as f64).max(ELEVATION_STEP_M),
             span / ELEVATION_SAMPLES as f64,
         );
         let root = root::first_crossing_traced(gap, (0.0, span), (steps.1, steps.0), ahead)?;
@@ -476,7 +478,18 @@ impl LocalRangeMap {
             return None;
         }
         let z_at = |psi: f64| s.z + rho * psi.tan();
-        let sees_z = |z: f64| self.sensor_vector(&Vector3::new(x, y, z)).is_some();
+        // The line in the sensor frame, a + z e: what `sensor_vector` tests, without a rotation
+        // per point.
+        let a = self
+            .pose
+            .rotation
+            .inverse_transform_vector(&Vector3::new(x - s.x, y - s.y, -s.z));
+        let e = self.pose.rotation.inverse_transform_vector(&Vector3::z());
+        let sees_z = |z: f64| {
+            let q = a + z * e;
+            let dist = q.norm();
+            dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&[q.x, q.y, q.z], dist)
+        };
         let sees = |psi: f64| sees_z(z_at(psi));
         let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
         let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;

@@ -1,8 +1,10 @@
 //! First crossing of a signed gap function along a line (negative in free space, non-negative
-//! at or behind the surface): coarse sampling, then the Illinois variant of regula falsi.
+//! at or behind the surface): coarse sampling or a trace, then a safeguarded secant (the
+//! Illinois variant of regula falsi where the secant strays).
 //! Shared by every map that answers "where does this line meet the surface".
 
-/// Residuals of this size (metres) and below count as "on the surface".
+/// A refinement stops when a trace's estimate of the distance to the crossing (else the gap, to
+/// a tenth of this) or its bracket is below this, metres.
 pub const ROOT_TOLERANCE_M: f64 = 1e-5;
 
 /// Last two iterates closer than this (metres) give the slope at the root as a secant.
@@ -36,19 +38,25 @@ pub fn first_crossing(gap: impl Fn(f64) -> Option<f64>, t0: f64, t1: f64, sample
             continue;
         };
         if g >= 0.0 {
-            return prev.and_then(|p| refine(&gap, p, (t, g)));
+            return prev.and_then(|p| refine(&gap, p, (t, g), None::<&fn(f64, f64) -> f64>));
         }
         prev = Some((t, g));
     }
     None
 }
 
+/// How far past the estimated crossing a traced step goes (the estimate assumes a flat surface
+/// and falls short on rising ground; the refinement takes the bracket an overshoot makes).
+const TRACE_OVERSHOOT: f64 = 1.5;
+
 /// The first t in [t0, t1] where `gap` turns non-negative, stepping from t0 by what the gap
-/// itself says of the distance left: `ahead(t, gap(t))` (clamped to [`min_step`, `max_step`];
-/// `max_step` after an unobserved point), then refined as [`first_crossing`] does. Where the
-/// gap measures the distance to a surface the step lands near it at once, so a long stretch of
-/// free space costs a few evaluations instead of a fixed sampling's many; `max_step` bounds what
-/// can be stepped over as a fixed sampling's spacing does.
+/// itself says of the distance left: `ahead(t, gap(t))` is the estimated signed distance to the
+/// crossing (positive in free space), stepped [`TRACE_OVERSHOOT`] times over and clamped to
+/// [`min_step`, `max_step`] (`max_step` after an unobserved point), then refined as
+/// [`first_crossing`] does, on the estimates. Where the gap measures
+/// the distance to a surface the step lands near it at once, so a long stretch of free space
+/// costs a few evaluations instead of a fixed sampling's many; `max_step` bounds what can be
+/// stepped over as a fixed sampling's spacing does.
 pub fn first_crossing_traced(
     gap: impl Fn(f64) -> Option<f64>,
     (t0, t1): (f64, f64),
@@ -59,10 +67,10 @@ pub fn first_crossing_traced(
     let mut t = t0;
     loop {
         let step = match gap(t) {
-            Some(g) if g >= 0.0 => return prev.and_then(|p| refine(&gap, p, (t, g))),
+            Some(g) if g >= 0.0 => return prev.and_then(|p| refine(&gap, p, (t, g), Some(&ahead))),
             Some(g) => {
                 prev = Some((t, g));
-                ahead(t, g).clamp(min_step, max_step)
+                (TRACE_OVERSHOOT * ahead(t, g)).clamp(min_step, max_step)
             }
             None => {
                 prev = None;
@@ -76,28 +84,64 @@ pub fn first_crossing_traced(
     }
 }
 
-/// Illinois refinement of a bracket (ga < 0 ≤ gb). The secant through the last two iterates
-/// is the slope at the root when they are close (superlinear convergence makes them so).
+/// Refinement of a bracket (ga < 0 ≤ gb). Each step takes the secant through the last two
+/// iterates when it falls inside the bracket and the last step at least halved the residual,
+/// else the Illinois variant of regula falsi (which keeps the convergence when the secant
+/// wanders). With a trace's `ahead`, the secant runs on its distance estimates rather than on
+/// the gap, and the first step is the estimate from the bracket's near end: a trace's bracket
+/// has one end far out in free space, where the gap is far from linear, while the estimate of
+/// the distance left is linear in t on flat ground and nearly so on any smooth surface. The
+/// secant of the gap through the last two iterates is the slope at the root when they are close.
 fn refine(
     gap: &impl Fn(f64) -> Option<f64>,
     (mut ta, mut ga): (f64, f64),
     (mut tb, mut gb): (f64, f64),
+    ahead: Option<&impl Fn(f64, f64) -> f64>,
 ) -> Option<Root> {
+    // The residual the secant runs on: the signed distance behind the surface the estimate
+    // gives (where it gives one), else the gap itself.
+    let estimate = |t: f64, g: f64| ahead.map(|ahead| -ahead(t, g)).filter(|h| h.is_finite());
+    let residual = |t: f64, g: f64| estimate(t, g).unwrap_or(g);
+    let converged = |t: f64, g: f64| match estimate(t, g) {
+        Some(h) => h.abs() < ROOT_TOLERANCE_M,
+        None => g.abs() < 0.1 * ROOT_TOLERANCE_M,
+    };
     let mut side = 0i8;
-    let mut previous = (tb, gb);
-    for _ in 0..60 {
-        let t = (ta * gb - tb * ga) / (gb - ga);
+    // The last two iterates as (t, gap, residual); the bracket's ends start the sequence.
+    let mut older = (ta, ga, residual(ta, ga));
+    let mut last = (tb, gb, residual(tb, gb));
+    for k in 0..60 {
+        let falsi = (ta * gb - tb * ga) / (gb - ga);
+        let guess = match (k, ahead) {
+            (0, Some(_)) => Some(last.0 - last.2),
+            _ => secant((older.0, older.2), (last.0, last.2)),
+        };
+        let converging = k == 0 || last.2.abs() <= 0.5 * older.2.abs();
+        let t = match guess {
+            Some(t) if t > ta && t < tb && converging => t,
+            _ => falsi,
+        };
         let g = gap(t)?;
-        if g.abs() < ROOT_TOLERANCE_M * 0.1 || (tb - ta).abs() < ROOT_TOLERANCE_M {
-            let (tp, gp) = previous;
-            let close = (t - tp).abs() <= SECANT_SPAN_M && t != tp;
+        if converged(t, g) || (tb - ta).abs() < ROOT_TOLERANCE_M {
+            let (tp, gp, hp) = last;
+            let slope = if (t - tp).abs() <= SECANT_SPAN_M && t != tp {
+                Some((g - gp) / (t - tp))
+            } else {
+                // The estimate's secant over the last step (nearly linear: see above) times the
+                // gap's change per unit of estimate at the root (a unit gap's estimate inverted).
+                estimate(t, g)
+                    .zip(estimate(t, 1.0))
+                    .filter(|_| t != tp)
+                    .map(|(h, unit)| (h - hp) / (t - tp) / unit)
+            };
             return Some(Root {
                 t,
-                slope: close.then(|| (g - gp) / (t - tp)),
+                slope: slope.filter(|s| s.is_finite()),
                 value: Some(g),
             });
         }
-        previous = (t, g);
+        older = last;
+        last = (t, g, residual(t, g));
         if g < 0.0 {
             ta = t;
             ga = g;
@@ -119,6 +163,11 @@ fn refine(
         slope: None,
         value: None,
     })
+}
+
+/// Where the line through two points (t, value) meets zero (`None` when it is flat).
+fn secant((t0, g0): (f64, f64), (t1, g1): (f64, f64)) -> Option<f64> {
+    (g1 != g0).then(|| t1 - g1 * (t1 - t0) / (g1 - g0))
 }
 
 /// Variance of a root of `gap` by the delta method, `var_at_root / (∂gap/∂t)²` (the
@@ -214,6 +263,28 @@ mod tests {
     }
 
     #[test]
+    fn a_flat_ground_trace_lands_on_the_crossing_with_its_slope_from_the_estimates() {
+        // A vertical line 5 m from a sensor 1 m above flat ground, t the depth below the
+        // sensor: the gap along each ray is far from linear in t (tens of metres near the
+        // horizon), the estimate of the distance left exact.
+        let (rho, ground) = (5.0f64, 1.0);
+        let calls = std::cell::Cell::new(0);
+        let gap = |t: f64| {
+            calls.set(calls.get() + 1);
+            let dist = rho.hypot(t);
+            Some(dist * (1.0 - ground / t))
+        };
+        let ahead = |t: f64, g: f64| -g * t / rho.hypot(t);
+        let root = first_crossing_traced(gap, (0.05, 2.0), (0.02, 0.5), ahead).expect("crossing");
+        assert!((root.t - ground).abs() < 1e-9, "{root:?}");
+        assert!(calls.get() <= 4, "{} evaluations", calls.get());
+        // ∂gap/∂t at the ground is the distance over the depth there.
+        let v = root_variance(gap, root, 1.0).expect("slope");
+        let slope = rho.hypot(ground) / ground;
+        assert!((v - 1.0 / (slope * slope)).abs() < 1e-9, "{v}");
+    }
+
+    #[test]
     fn traced_steps_take_the_first_crossing_in_few_evaluations() {
         // An estimate of the distance left far too generous is held to the largest step: the
         // first of the two crossings of sin(t) − 0.5 is still the one found.
@@ -221,17 +292,17 @@ mod tests {
         let root = first_crossing_traced(gap, (-1.0, 3.0), (0.05, 0.2), |_, g| -10.0 * g).expect("crossing");
         assert!((root.t - std::f64::consts::FRAC_PI_6).abs() < 1e-6, "{root:?}");
         assert!(root.gap().is_some_and(|g| g.abs() < 1e-5));
-        // A surface 3 away and an estimate that overshoots by half: bracketed at once, the
-        // secant lands on it (three evaluations, where even sampling at the smallest step
-        // would take 300).
+        // A surface 3 away and an exact estimate: the overshot step brackets it at once and the
+        // estimate from behind lands on it (three evaluations, where even sampling at the
+        // smallest step would take 300).
         let calls = std::cell::Cell::new(0);
         let line = |t: f64| {
             calls.set(calls.get() + 1);
             Some(t - 3.0)
         };
-        let root = first_crossing_traced(line, (0.0, 10.0), (0.01, 5.0), |_, g| -1.5 * g).expect("crossing");
+        let root = first_crossing_traced(line, (0.0, 10.0), (0.01, 5.0), |_, g| -g).expect("crossing");
         assert!(
-            (root.t - 3.0).abs() < 1e-9 && calls.get() <= 4,
+            (root.t - 3.0).abs() < 1e-9 && calls.get() <= 3,
             "{root:?} after {} calls",
             calls.get()
         );

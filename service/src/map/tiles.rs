@@ -57,31 +57,67 @@ struct Grid {
 impl Grid {
     /// Azimuth relative to the arc start, in [0, 2π).
     fn rel_phi(&self, phi: f64) -> f64 {
-        (phi - self.phi0).rem_euclid(TAU)
+        rem_turn(phi - self.phi0)
     }
 
-    /// Weight of tile (r, c) at (θ, relative φ): product of ramps over the overlap margins.
-    fn weight(&self, r: usize, c: usize, theta: f64, rel: f64) -> f64 {
-        let wt = ramp(
-            theta,
-            self.theta0 + r as f64 * self.dtheta,
-            self.dtheta,
-            self.margin_theta,
-            r == 0,
-            r + 1 == self.rows,
-        );
-        if wt == 0.0 {
-            return 0.0;
+    /// The tiles whose extended box may contain (θ, relative φ), row by row, as their index in
+    /// the row-major tile list and their weight there: the product of ramps over the overlap
+    /// margins, zero outside the tile's support. Each row's and each column's ramp is
+    /// computed once (a query blends up to nine tiles of three rows and three columns).
+    fn covering(&self, theta: f64, rel: f64) -> ([(usize, f64); 9], usize) {
+        let r = floor_index((theta - self.theta0) / self.dtheta);
+        let c = floor_index(rel / self.dphi);
+        let (rows, cols) = (self.rows as i64, self.cols as i64);
+        let mut row_weights = [(0usize, 0.0f64); 3];
+        let mut n_rows = 0;
+        for rr in (r - 1..=r + 1).filter(|rr| (0..rows).contains(rr)) {
+            let rr = rr as usize;
+            let lo = self.theta0 + rr as f64 * self.dtheta;
+            let w = ramp(
+                theta,
+                lo,
+                self.dtheta,
+                self.margin_theta,
+                rr == 0,
+                rr + 1 == self.rows,
+            );
+            row_weights[n_rows] = (rr, w);
+            n_rows += 1;
         }
+        let mut col_weights = [(0usize, 0.0f64); 3];
+        let mut n_cols = 0;
+        for cc in c - 1..=c + 1 {
+            let cc = if self.full_turn { cc.rem_euclid(cols) } else { cc };
+            if !(0..cols).contains(&cc) {
+                continue;
+            }
+            let cc = cc as usize;
+            col_weights[n_cols] = (cc, self.column_weight(cc, rel));
+            n_cols += 1;
+        }
+        let mut out = [(0usize, 0.0f64); 9];
+        let mut n = 0;
+        for &(rr, wt) in &row_weights[..n_rows] {
+            for &(cc, wc) in &col_weights[..n_cols] {
+                out[n] = (rr * self.cols + cc, if wt == 0.0 { 0.0 } else { wt * wc });
+                n += 1;
+            }
+        }
+        (out, n)
+    }
+
+    /// The azimuth ramp of column `c` at relative φ `rel` (a full turn measured from the
+    /// column's centre, so the ramp wraps).
+    fn column_weight(&self, c: usize, rel: f64) -> f64 {
         let lo = c as f64 * self.dphi;
         let rel = if self.full_turn {
             let centre = lo + self.dphi / 2.0;
-            centre + (rel - centre + TAU / 2.0).rem_euclid(TAU) - TAU / 2.0
+            centre + rem_turn(rel - centre + TAU / 2.0) - TAU / 2.0
         } else {
             rel
         };
         let open_ends = !self.full_turn;
-        wt * ramp(
+        ramp(
             rel,
             lo,
             self.dphi,
@@ -90,18 +126,30 @@ impl Grid {
             open_ends && c + 1 == self.cols,
         )
     }
+}
 
-    /// Tiles whose extended box may contain (θ, relative φ).
-    fn candidates(&self, theta: f64, rel: f64) -> impl Iterator<Item = (usize, usize)> + '_ {
-        let r = ((theta - self.theta0) / self.dtheta).floor() as i64;
-        let c = (rel / self.dphi).floor() as i64;
-        let (rows, cols) = (self.rows as i64, self.cols as i64);
-        (r - 1..=r + 1).flat_map(move |rr| {
-            (c - 1..=c + 1).filter_map(move |cc| {
-                let cc = if self.full_turn { cc.rem_euclid(cols) } else { cc };
-                (rr >= 0 && rr < rows && cc >= 0 && cc < cols).then_some((rr as usize, cc as usize))
-            })
-        })
+/// `x.rem_euclid(2π)` without a division within a turn of [0, 2π), where the remainder is
+/// exact and the same number comes out.
+fn rem_turn(x: f64) -> f64 {
+    if (0.0..TAU).contains(&x) {
+        x
+    } else if x > -TAU && x < 0.0 {
+        x + TAU
+    } else if (TAU..2.0 * TAU).contains(&x) {
+        x - TAU
+    } else {
+        x.rem_euclid(TAU)
+    }
+}
+
+/// `x.floor()` as an index without a libm call (the targeted x86-64 baseline has no rounding
+/// instruction).
+fn floor_index(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x {
+        t - 1
+    } else {
+        t
     }
 }
 
@@ -212,10 +260,10 @@ impl TiledGp {
         };
         let mut members: Vec<Vec<usize>> = vec![Vec::new(); rows * cols];
         for (i, r) in rays.iter().enumerate() {
-            let rel = grid.rel_phi(r.azimuth);
-            for (tr, tc) in grid.candidates(r.inclination, rel) {
-                if grid.weight(tr, tc, r.inclination, rel) > 0.0 {
-                    members[tr * cols + tc].push(i);
+            let (tiles, n) = grid.covering(r.inclination, grid.rel_phi(r.azimuth));
+            for &(k, w) in &tiles[..n] {
+                if w > 0.0 {
+                    members[k].push(i);
                 }
             }
         }
@@ -290,15 +338,15 @@ impl TiledGp {
     /// the experts that answer there (what [`super::local::provenance_of`] grades).
     pub fn nearest_datum(&self, inclination: f64, azimuth: f64) -> f64 {
         let x = self.embedding.point(inclination, azimuth);
-        let rel = self.grid.rel_phi(azimuth);
+        let (tiles, n) = self.grid.covering(inclination, self.grid.rel_phi(azimuth));
         let mut nearest = f64::INFINITY;
         let mut fallback = None;
-        for (r, c) in self.grid.candidates(inclination, rel) {
-            let Some(gp) = &self.experts[r * self.grid.cols + c] else {
+        for &(k, w) in &tiles[..n] {
+            let Some(gp) = &self.experts[k] else {
                 continue;
             };
             fallback.get_or_insert(gp);
-            if self.grid.weight(r, c, inclination, rel) > 0.0 {
+            if w > 0.0 {
                 nearest = nearest.min(gp.nearest_input_distance(&x));
             }
         }
@@ -323,15 +371,13 @@ impl TiledGp {
         let mut assigned: Vec<Vec<(usize, f64)>> = vec![Vec::new(); self.experts.len()];
         let any_expert = self.experts.iter().position(Option::is_some);
         for (q, &(theta, phi)) in angles.iter().enumerate() {
-            let rel = self.grid.rel_phi(phi);
+            let (tiles, n) = self.grid.covering(theta, self.grid.rel_phi(phi));
             let (mut covered, mut nearest) = (false, None);
-            for (r, c) in self.grid.candidates(theta, rel) {
-                let k = r * self.grid.cols + c;
+            for &(k, w) in &tiles[..n] {
                 if self.experts[k].is_none() {
                     continue;
                 }
                 nearest.get_or_insert(k);
-                let w = self.grid.weight(r, c, theta, rel);
                 if w > 0.0 {
                     assigned[k].push((q, w));
                     covered = true;
@@ -374,14 +420,13 @@ impl TiledGp {
     }
 
     fn blend(&self, inclination: f64, azimuth: f64, f: impl Fn(&ExactGp) -> (f64, f64)) -> (f64, f64) {
-        let rel = self.grid.rel_phi(azimuth);
+        let (tiles, n) = self.grid.covering(inclination, self.grid.rel_phi(azimuth));
         let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
         let mut fallback = None;
-        for (r, c) in self.grid.candidates(inclination, rel) {
-            let Some(gp) = &self.experts[r * self.grid.cols + c] else {
+        for &(k, w) in &tiles[..n] {
+            let Some(gp) = &self.experts[k] else {
                 continue;
             };
-            let w = self.grid.weight(r, c, inclination, rel);
             fallback.get_or_insert(gp);
             if w > 0.0 {
                 let (m, v) = f(gp);

@@ -992,15 +992,26 @@ impl WorldAggregate {
     /// `max_gap_m`.
     fn nearest_cell(&self, x: f64, y: f64) -> Option<f64> {
         let (ci, cj) = self.cell_of(x, y);
-        let reach = (self.params.max_gap_m / self.params.cell_m).ceil() as i32;
+        let cell = self.params.cell_m;
+        let reach = (self.params.max_gap_m / cell).ceil() as i32;
         let mut nearest = f64::INFINITY;
-        for di in -reach..=reach {
-            for dj in -reach..=reach {
-                let key = (ci + di, cj + dj);
-                if self.cells.contains_key(&key) {
-                    let (cx, cy) = self.centre(key);
-                    nearest = nearest.min((cx - x).hypot(cy - y));
+        // Ring by ring outwards: every centre of ring r + 1 and beyond lies at least (r + ½)
+        // cells away, so a nearer one found by ring r ends the search (the same minimum as
+        // visiting the whole square, in a handful of lookups where cells are dense).
+        for r in 0..=reach {
+            for di in -r..=r {
+                let edge = di.abs() == r;
+                let step = if edge { 1 } else { (2 * r).max(1) as usize };
+                for dj in (-r..=r).step_by(step) {
+                    let key = (ci + di, cj + dj);
+                    if self.cells.contains_key(&key) {
+                        let (cx, cy) = self.centre(key);
+                        nearest = nearest.min((cx - x).hypot(cy - y));
+                    }
                 }
+            }
+            if nearest < (r as f64 + 0.5) * cell * (1.0 - 1e-9) {
+                break;
             }
         }
         (nearest <= self.params.max_gap_m).then_some(nearest)
@@ -1067,40 +1078,61 @@ impl WorldAggregate {
     }
 
     /// How much data stands behind the answer at (x, y): graded by the distance to the nearest
-    /// fused cell against the experts' length scale (`None` where nothing is answered).
+    /// fused cell against the experts' length scale (`None` where nothing is answered). Needs no
+    /// prediction: only whether one would be made.
     pub fn provenance(&self, x: f64, y: f64) -> Provenance {
-        self.graded(x, y).map_or(Provenance::None, |(_, p)| p)
+        let Some(datum_m) = self.nearest_cell(x, y) else {
+            return Provenance::None;
+        };
+        if self.covering(x, y).next().is_none() {
+            return Provenance::None;
+        }
+        provenance_of(datum_m, self.params.length_scale)
     }
 
-    /// The height at (x, y) with its provenance: the tiles blended with a partition of unity,
-    /// where a fused cell lies within `max_gap_m`.
+    /// The tile experts whose weight at (x, y) is positive, with the weight.
+    fn covering(&self, x: f64, y: f64) -> impl Iterator<Item = (&ElevationGp, f64)> + '_ {
+        let (ti, tj) = self.tile_of(self.cell_of(x, y));
+        (-1..=1)
+            .flat_map(move |di| (-1..=1).map(move |dj| (ti + di, tj + dj)))
+            .filter_map(move |t| {
+                let gp = self.tiles.get(&t)?;
+                let w = self.weight(t, x, y);
+                (w > 0.0).then_some((gp.as_ref(), w))
+            })
+    }
+
+    /// The height at (x, y) where a fused cell lies within `max_gap_m`.
+    fn estimate(&self, x: f64, y: f64) -> Option<HeightEstimate> {
+        self.nearest_cell(x, y)?;
+        self.blend(x, y)
+    }
+
+    /// [`Self::estimate`] with its provenance.
     fn graded(&self, x: f64, y: f64) -> Option<(HeightEstimate, Provenance)> {
         let datum_m = self.nearest_cell(x, y)?;
-        let (ti, tj) = self.tile_of(self.cell_of(x, y));
+        let e = self.blend(x, y)?;
+        Some((e, provenance_of(datum_m, self.params.length_scale)))
+    }
+
+    /// The tiles at (x, y) blended with a partition of unity (mean and variance of the mixture).
+    fn blend(&self, x: f64, y: f64) -> Option<HeightEstimate> {
         let (mut wsum, mut m1, mut m2) = (0.0, 0.0, 0.0);
-        for di in -1..=1 {
-            for dj in -1..=1 {
-                let t = (ti + di, tj + dj);
-                let Some(gp) = self.tiles.get(&t) else { continue };
-                let w = self.weight(t, x, y);
-                if w > 0.0 {
-                    let (m, v) = gp.predict(x, y);
-                    wsum += w;
-                    m1 += w * m;
-                    m2 += w * (v + m * m);
-                }
-            }
+        for (gp, w) in self.covering(x, y) {
+            let (m, v) = gp.predict(x, y);
+            wsum += w;
+            m1 += w * m;
+            m2 += w * (v + m * m);
         }
         (wsum > 0.0).then(|| {
             let z = m1 / wsum;
             let var = (m2 / wsum - z * z).max(0.0);
-            let estimate = HeightEstimate {
+            HeightEstimate {
                 z,
                 var,
                 grazing: f64::INFINITY,
                 point_sd: [0.0, 0.0, var.sqrt()],
-            };
-            (estimate, provenance_of(datum_m, self.params.length_scale))
+            }
         })
     }
 }
@@ -1166,7 +1198,7 @@ impl Aggregate for WorldAggregate {
     }
 
     fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
-        self.graded(x, y).map(|(e, _)| e)
+        self.estimate(x, y)
     }
 
     fn len(&self) -> usize {
@@ -1215,6 +1247,33 @@ mod tests {
             history: Vec::new(),
         })
         .expect("refit")
+    }
+
+    #[test]
+    fn the_ring_search_finds_the_nearest_cell_of_the_whole_square() {
+        let mut agg = block();
+        // Holes and an outlier, so the nearest cell is not always the one underneath.
+        agg.cells.retain(|&(i, j), _| (i + 2 * j) % 5 != 0);
+        let reach = (agg.params.max_gap_m / agg.params.cell_m).ceil() as i32;
+        let brute = |x: f64, y: f64| {
+            let (ci, cj) = agg.cell_of(x, y);
+            let mut nearest = f64::INFINITY;
+            for di in -reach..=reach {
+                for dj in -reach..=reach {
+                    if agg.cells.contains_key(&(ci + di, cj + dj)) {
+                        let (cx, cy) = agg.centre((ci + di, cj + dj));
+                        nearest = nearest.min((cx - x).hypot(cy - y));
+                    }
+                }
+            }
+            (nearest <= agg.params.max_gap_m).then_some(nearest)
+        };
+        let mut rng = rand_pcg::Pcg64::new(11, 3);
+        for _ in 0..2000 {
+            use rand::Rng;
+            let (x, y) = (rng.random_range(-1.5..5.5), rng.random_range(-1.5..5.5));
+            assert_eq!(agg.nearest_cell(x, y), brute(x, y), "at ({x}, {y})");
+        }
     }
 
     #[test]
