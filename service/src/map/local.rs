@@ -339,10 +339,15 @@ impl LocalRangeMap {
     /// Sensor-frame vector to map point `p` and its length, if inside the observed field of
     /// view (no inverse trigonometry: the membership test of every search).
     fn sensor_vector(&self, p: &Vector3<f64>) -> Option<([f64; 3], f64)> {
-        let q = self
-            .pose
-            .rotation
-            .inverse_transform_vector(&(p - self.sensor_position()));
+        self.in_view(
+            self.pose
+                .rotation
+                .inverse_transform_vector(&(p - self.sensor_position())),
+        )
+    }
+
+    /// Sensor-frame vector `q` and its length, if inside the observed field of view.
+    fn in_view(&self, q: Vector3<f64>) -> Option<([f64; 3], f64)> {
         let dist = q.norm();
         let v = [q.x, q.y, q.z];
         (dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&v, dist)).then_some((v, dist))
@@ -485,11 +490,7 @@ impl LocalRangeMap {
             .rotation
             .inverse_transform_vector(&Vector3::new(x - s.x, y - s.y, -s.z));
         let e = self.pose.rotation.inverse_transform_vector(&Vector3::z());
-        let sees_z = |z: f64| {
-            let q = a + z * e;
-            let dist = q.norm();
-            dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&[q.x, q.y, q.z], dist)
-        };
+        let sees_z = |z: f64| self.in_view(a + z * e).is_some();
         let sees = |psi: f64| sees_z(z_at(psi));
         let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
         let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;

@@ -7,7 +7,6 @@ use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use nalgebra::Vector3;
 use rangegp_proto::msg::{ElevationItem, Provenance, Ray, RayItem, Refusal, Source, VarianceItem};
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 /// How many of the nearest window maps are asked per query point (the least uncertain wins).
@@ -301,46 +300,27 @@ fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
     raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| snapshot.scales.factor(source, a.rho_m, &a.estimate))
 }
 
-/// Maps `f` over `items` on up to `threads` scoped threads (the caller's among them), keeping
-/// order. The items are dealt out in small blocks as threads come free, so a stretch of costly
-/// items (a grid's ground no window map sees, answered by the aggregate) does not hold one
-/// thread while the others idle.
+/// Maps `f` over `items` on up to `threads` scoped threads, keeping order.
 pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
     let threads = threads.max(1).min(items.len().div_ceil(16).max(1));
     if threads == 1 {
         return items.iter().map(&f).collect();
     }
-    let block = (items.len() / (threads * PAR_BLOCKS_PER_THREAD)).max(16);
-    let blocks = items.len().div_ceil(block);
-    let next = AtomicUsize::new(0);
-    let work = || {
-        let mut done = Vec::new();
-        loop {
-            let b = next.fetch_add(1, Ordering::Relaxed);
-            if b >= blocks {
-                return done;
-            }
-            let chunk = &items[b * block..((b + 1) * block).min(items.len())];
-            done.push((b, chunk.iter().map(&f).collect::<Vec<R>>()));
-        }
-    };
-    let mut finished: Vec<(usize, Vec<R>)> = std::thread::scope(|scope| {
-        let helpers: Vec<_> = (1..threads).map(|_| scope.spawn(work)).collect();
-        let mut all = work();
-        for h in helpers {
-            match h.join() {
-                Ok(v) => all.extend(v),
+    let chunk = items.len().div_ceil(threads);
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = items
+            .chunks(chunk)
+            .map(|c| scope.spawn(|| c.iter().map(&f).collect::<Vec<R>>()))
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| match h.join() {
+                Ok(v) => v,
                 Err(panic) => std::panic::resume_unwind(panic),
-            }
-        }
-        all
-    });
-    finished.sort_unstable_by_key(|(b, _)| *b);
-    finished.into_iter().flat_map(|(_, v)| v).collect()
+            })
+            .collect()
+    })
 }
-
-/// Blocks per thread [`par_map`] deals out (more balance the load, fewer cost less hand-off).
-const PAR_BLOCKS_PER_THREAD: usize = 8;
 
 #[cfg(test)]
 mod tests {

@@ -53,10 +53,10 @@ const TRACE_OVERSHOOT: f64 = 1.5;
 /// itself says of the distance left: `ahead(t, gap(t))` is the estimated signed distance to the
 /// crossing (positive in free space), stepped [`TRACE_OVERSHOOT`] times over and clamped to
 /// [`min_step`, `max_step`] (`max_step` after an unobserved point), then refined as
-/// [`first_crossing`] does, on the estimates. Where the gap measures
-/// the distance to a surface the step lands near it at once, so a long stretch of free space
-/// costs a few evaluations instead of a fixed sampling's many; `max_step` bounds what can be
-/// stepped over as a fixed sampling's spacing does.
+/// [`first_crossing`] does, on the estimates. Where the gap measures the distance to a surface
+/// the step lands near it at once, so a long stretch of free space costs a few evaluations
+/// instead of a fixed sampling's many; `max_step` bounds what can be stepped over as a fixed
+/// sampling's spacing does.
 pub fn first_crossing_traced(
     gap: impl Fn(f64) -> Option<f64>,
     (t0, t1): (f64, f64),
@@ -102,10 +102,6 @@ fn refine(
     // gives (where it gives one), else the gap itself.
     let estimate = |t: f64, g: f64| ahead.map(|ahead| -ahead(t, g)).filter(|h| h.is_finite());
     let residual = |t: f64, g: f64| estimate(t, g).unwrap_or(g);
-    let converged = |t: f64, g: f64| match estimate(t, g) {
-        Some(h) => h.abs() < ROOT_TOLERANCE_M,
-        None => g.abs() < 0.1 * ROOT_TOLERANCE_M,
-    };
     let mut side = 0i8;
     // The last two iterates as (t, gap, residual); the bracket's ends start the sequence.
     let mut older = (ta, ga, residual(ta, ga));
@@ -122,15 +118,19 @@ fn refine(
             _ => falsi,
         };
         let g = gap(t)?;
-        if converged(t, g) || (tb - ta).abs() < ROOT_TOLERANCE_M {
+        let h = estimate(t, g);
+        let converged = match h {
+            Some(h) => h.abs() < ROOT_TOLERANCE_M,
+            None => g.abs() < 0.1 * ROOT_TOLERANCE_M,
+        };
+        if converged || (tb - ta).abs() < ROOT_TOLERANCE_M {
             let (tp, gp, hp) = last;
             let slope = if (t - tp).abs() <= SECANT_SPAN_M && t != tp {
                 Some((g - gp) / (t - tp))
             } else {
                 // The estimate's secant over the last step (nearly linear: see above) times the
                 // gap's change per unit of estimate at the root (a unit gap's estimate inverted).
-                estimate(t, g)
-                    .zip(estimate(t, 1.0))
+                h.zip(estimate(t, 1.0))
                     .filter(|_| t != tp)
                     .map(|(h, unit)| (h - hp) / (t - tp) / unit)
             };
@@ -141,7 +141,7 @@ fn refine(
             });
         }
         older = last;
-        last = (t, g, residual(t, g));
+        last = (t, g, h.unwrap_or(g));
         if g < 0.0 {
             ta = t;
             ga = g;

@@ -99,7 +99,7 @@ impl Grid {
         let mut n = 0;
         for &(rr, wt) in &row_weights[..n_rows] {
             for &(cc, wc) in &col_weights[..n_cols] {
-                out[n] = (rr * self.cols + cc, if wt == 0.0 { 0.0 } else { wt * wc });
+                out[n] = (rr * self.cols + cc, wt * wc);
                 n += 1;
             }
         }
