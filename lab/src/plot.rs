@@ -281,6 +281,88 @@ pub fn reliability_chart(file: &Path, title: &str, bins: &[(f64, f64, usize)]) -
     render_png(file, size, |buf| draw_reliability(buf, size, title, bins))
 }
 
+/// One curve of a [`coverage_chart`]: its legend, and (nominal probability, observed share)
+/// points in ascending nominal order.
+pub struct CoverageCurve {
+    /// Legend text (what was pooled, with its answer count).
+    pub label: String,
+    /// (central interval's probability, share of errors inside it).
+    pub points: Vec<[f64; 2]>,
+}
+
+/// A reliability diagram of σ: for central intervals mean ± Φ⁻¹((1 + p) / 2) σ, the share of
+/// true values inside against p, one coloured curve per `curves` entry, the diagonal of a
+/// calibrated σ, and `targets` as shaded boxes ((p, [lo, hi]): where the share at p must lie).
+pub fn coverage_chart(
+    file: &Path,
+    title: &str,
+    curves: &[CoverageCurve],
+    targets: &[(f64, (f64, f64))],
+) -> Result<(), PlotError> {
+    let size = (720, 600);
+    render_png(file, size, |buf| draw_coverage(buf, size, title, curves, targets))
+}
+
+fn draw_coverage(
+    buf: &mut [u8],
+    size: (u32, u32),
+    title: &str,
+    curves: &[CoverageCurve],
+    targets: &[(f64, (f64, f64))],
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let root = BitMapBackend::with_buffer(buf, size).into_drawing_area();
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 17))
+        .margin(20)
+        .x_label_area_size(50)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
+    chart
+        .configure_mesh()
+        .x_desc("central interval's probability (mean ± z·σ)")
+        .y_desc("share of true heights inside")
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style(("sans-serif", 13))
+        .axis_desc_style(("sans-serif", 15))
+        .draw()?;
+    let shade = RGBColor(120, 200, 120).mix(0.35);
+    chart.draw_series(
+        targets
+            .iter()
+            .map(|&(p, (lo, hi))| Rectangle::new([(p - 0.012, lo), (p + 0.012, hi)], shade.filled())),
+    )?;
+    chart
+        .draw_series(LineSeries::new([(0.0, 0.0), (1.0, 1.0)], BLACK.stroke_width(1)))?
+        .label("calibrated (diagonal); green: the bar")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 18, y)], BLACK));
+    for (k, curve) in curves.iter().enumerate() {
+        let c = colorous::CATEGORY10[k % colorous::CATEGORY10.len()];
+        let colour = RGBColor(c.r, c.g, c.b);
+        chart
+            .draw_series(LineSeries::new(
+                curve.points.iter().map(|&[p, f]| (p, f)),
+                colour.stroke_width(2),
+            ))?
+            .label(curve.label.as_str())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+        chart.draw_series(
+            curve
+                .points
+                .iter()
+                .map(|&[p, f]| Circle::new((p, f), 3, colour.filled())),
+        )?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .draw()?;
+    root.present()?;
+    Ok(())
+}
+
 /// Draws a picture of `size` pixels with `draw` (onto a white RGB buffer, the fonts registered)
 /// and writes it to the PNG `file`.
 fn render_png(

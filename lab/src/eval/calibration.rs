@@ -13,6 +13,7 @@
 use super::drive::{map_drive, Drive, MappedDrive};
 use super::scores::{Sample, Scores};
 use super::FamilyOptions;
+use crate::plot::{coverage_chart, CoverageCurve};
 use anyhow::Result;
 use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -24,7 +25,8 @@ use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
 use rayon::prelude::*;
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
 
 /// Range bands, metres from the last sensor position (the last is open-ended).
 pub const BANDS: [(f64, f64, &str); 5] = [
@@ -130,6 +132,69 @@ fn reliability(samples: &[Sample]) -> Vec<[f64; 2]> {
             [level, inside as f64 / z.len().max(1) as f64]
         })
         .collect()
+}
+
+/// The reliability curve pooled over `cells` (each cell's shares weighted by its answers), and
+/// the answers behind it; `None` when no cell has answers.
+fn pooled_reliability<'a>(cells: impl Iterator<Item = &'a Cell>) -> Option<(Vec<[f64; 2]>, usize)> {
+    let mut sums = [0.0; RELIABILITY_LEVELS.len()];
+    let mut n = 0;
+    for c in cells.filter(|c| c.n > 0 && c.reliability.len() == RELIABILITY_LEVELS.len()) {
+        for (sum, [_, share]) in sums.iter_mut().zip(&c.reliability) {
+            *sum += share * c.n as f64;
+        }
+        n += c.n;
+    }
+    (n > 0).then(|| {
+        let curve = RELIABILITY_LEVELS
+            .iter()
+            .zip(sums)
+            .map(|(&level, sum)| [level, sum / n as f64])
+            .collect();
+        (curve, n)
+    })
+}
+
+/// Writes one reliability diagram per sensor, `calibration_reliability_<sensor>.png` in `out`:
+/// window and aggregate answers on seen ground and answers about occluded ground, each pooled
+/// over the terrains, against the diagonal and the bar's boxes at 68 % and 95 %. Returns the
+/// files written.
+pub fn write_reliability_pictures(report: &CalibrationReport, out: &Path) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(out)?;
+    let sensors: BTreeSet<&str> = report.cells.iter().map(|c| c.sensor.as_str()).collect();
+    let targets = [(0.68, COV68), (0.95, COV95)];
+    let mut files = Vec::new();
+    for sensor in sensors {
+        let of = |what: &str, keep: &dyn Fn(&Cell) -> bool| {
+            pooled_reliability(report.cells.iter().filter(|c| c.sensor == sensor && keep(c))).map(
+                |(points, n)| CoverageCurve {
+                    label: format!("{what} ({n} answers)"),
+                    points,
+                },
+            )
+        };
+        let curves: Vec<CoverageCurve> = [
+            of("window, seen ground", &|c| {
+                c.source == "window" && c.band != OCCLUDED
+            }),
+            of("aggregate, seen ground", &|c| {
+                c.source == "aggregate" && c.band != OCCLUDED
+            }),
+            of("occluded ground", &|c| c.band == OCCLUDED),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        let file = out.join(format!("calibration_reliability_{sensor}.png"));
+        let title = format!(
+            "Height σ, {sensor}, {} terrains pooled (seed {})",
+            if report.quick { "quick" } else { "all" },
+            report.seed
+        );
+        coverage_chart(&file, &title, &curves, &targets)?;
+        files.push(file);
+    }
+    Ok(files)
 }
 
 /// One cell of the calibration matrix.
@@ -466,5 +531,55 @@ mod tests {
             assert!(share < level - 0.01, "level {level}: {share}");
         }
         assert!((normal_quantile(0.975) - 1.959964).abs() < 1e-5);
+    }
+
+    fn cell(sensor: &str, band: &str, source: &str, n: usize, share: f64) -> Cell {
+        Cell {
+            n,
+            reliability: RELIABILITY_LEVELS.iter().map(|&l| [l, share]).collect(),
+            ..Cell::refusals("flat", sensor, band, source, 0)
+        }
+    }
+
+    #[test]
+    fn pooled_curves_weigh_cells_by_their_answers_and_each_sensor_gets_a_picture() {
+        let cells = [
+            cell("vlp16", "0-5", "window", 300, 0.9),
+            cell("vlp16", "5-10", "window", 100, 0.5),
+            cell("vlp16", OCCLUDED, "window", 0, 0.0),
+        ];
+        let (curve, n) = pooled_reliability(cells.iter()).expect("answers");
+        assert_eq!(n, 400);
+        assert!(curve.iter().all(|&[_, share]| (share - 0.8).abs() < 1e-12));
+        assert!(pooled_reliability(cells[2..].iter()).is_none());
+
+        let report = CalibrationReport {
+            quick: true,
+            seed: 0,
+            cells: vec![
+                cells[0].clone(),
+                cell("os1-64", "0-5", "aggregate", 50, 0.7),
+                cell("os1-64", OCCLUDED, "window", 20, 0.3),
+            ],
+            failures: Vec::new(),
+        };
+        let dir = std::env::temp_dir().join(format!("rangegp-reliability-{}", std::process::id()));
+        let files = write_reliability_pictures(&report, &dir).expect("pictures");
+        let names: Vec<String> = files
+            .iter()
+            .filter_map(|f| Some(f.file_name()?.to_string_lossy().into_owned()))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "calibration_reliability_os1-64.png",
+                "calibration_reliability_vlp16.png"
+            ]
+        );
+        for f in &files {
+            let img = image::open(f).expect("a PNG").to_rgb8();
+            assert_eq!(img.dimensions(), (720, 600));
+        }
+        std::fs::remove_dir_all(&dir).expect("clean up");
     }
 }

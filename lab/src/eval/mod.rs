@@ -303,6 +303,9 @@ fn run_view_experiment(opts: &EvalOptions) -> Result<Summary> {
 fn run_calibration_experiment(opts: &EvalOptions) -> Result<Summary> {
     let report = calibration::run_calibration(&FamilyOptions::of(opts)?)?;
     calibration::print_calibration(&report);
+    for file in calibration::write_reliability_pictures(&report, &opts.out)? {
+        println!("  reliability diagram: {}", file.display());
+    }
     if report.failures.is_empty() {
         println!("\nEvery cell with n ≥ {} calibrated.", calibration::MIN_CELL_N);
     }
