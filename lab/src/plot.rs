@@ -303,6 +303,38 @@ pub fn coverage_chart(
     render_png(file, size, |buf| draw_coverage(buf, size, title, curves, targets))
 }
 
+/// A chart over the unit square on `root`: captioned `title`, both axes described, a light
+/// mesh (what the reliability diagrams draw on).
+fn unit_square<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+) -> Result<UnitSquare<'a, 'b>, Box<dyn std::error::Error + Send + Sync>> {
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 17))
+        .margin(20)
+        .x_label_area_size(50)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .light_line_style(RGBColor(238, 238, 238))
+        .label_style(("sans-serif", 13))
+        .axis_desc_style(("sans-serif", 15))
+        .draw()?;
+    Ok(chart)
+}
+
+/// What [`unit_square`] makes.
+type UnitSquare<'a, 'b> = ChartContext<
+    'a,
+    BitMapBackend<'b>,
+    Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+>;
+
 fn draw_coverage(
     buf: &mut [u8],
     size: (u32, u32),
@@ -311,20 +343,12 @@ fn draw_coverage(
     targets: &[(f64, (f64, f64))],
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let root = BitMapBackend::with_buffer(buf, size).into_drawing_area();
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 17))
-        .margin(20)
-        .x_label_area_size(50)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
-    chart
-        .configure_mesh()
-        .x_desc("central interval's probability (mean ± z·σ)")
-        .y_desc("share of true heights inside")
-        .light_line_style(RGBColor(238, 238, 238))
-        .label_style(("sans-serif", 13))
-        .axis_desc_style(("sans-serif", 15))
-        .draw()?;
+    let mut chart = unit_square(
+        &root,
+        title,
+        "central interval's probability (mean ± z·σ)",
+        "share of true heights inside",
+    )?;
     let shade = RGBColor(120, 200, 120).mix(0.35);
     chart.draw_series(
         targets
@@ -391,19 +415,7 @@ fn draw_reliability(
     bins: &[(f64, f64, usize)],
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let root = BitMapBackend::with_buffer(buf, size).into_drawing_area();
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(20)
-        .x_label_area_size(50)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
-    chart
-        .configure_mesh()
-        .x_desc("predicted probability")
-        .y_desc("observed frequency")
-        .label_style(("sans-serif", 13))
-        .axis_desc_style(("sans-serif", 15))
-        .draw()?;
+    let mut chart = unit_square(&root, title, "predicted probability", "observed frequency")?;
     chart.draw_series(LineSeries::new([(0.0, 0.0), (1.0, 1.0)], BLACK.stroke_width(1)))?;
     chart.draw_series(LineSeries::new(
         bins.iter().map(|&(p, f, _)| (p, f)),

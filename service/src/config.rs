@@ -209,6 +209,10 @@ pub struct IngestConfig {
     /// Longest wait between attempts to subscribe when the scan service cannot be opened
     /// (slots taken, incompatible settings), milliseconds.
     pub max_retry_interval_ms: u64,
+    /// Measure each scan's range noise floor from its returns (second differences along its
+    /// rings; needs ring and column indices): the noise a header's per-metre coefficient cannot
+    /// state (a VLP-16's 3 cm at any range). Off: the header's model alone.
+    pub learn_noise_floor: bool,
 }
 
 /// GP model.
@@ -414,6 +418,7 @@ impl Default for IngestConfig {
             pose_slack_m: 2.0,
             pose_confirm_scans: 3,
             max_retry_interval_ms: 10_000,
+            learn_noise_floor: true,
         }
     }
 }

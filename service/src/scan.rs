@@ -30,8 +30,18 @@ pub struct ScanInput {
     pub max_range_m: f64,
     /// Range noise σ per metre of range.
     pub range_noise_per_m: f64,
+    /// Range noise σ at every range beyond the header's per-metre part, metres: what the scan's
+    /// own returns show (`ingest::noise`; 0 where they cannot tell).
+    pub range_noise_floor_m: f64,
     /// Returned rays.
     pub rays: Vec<RayObservation>,
+}
+
+impl ScanInput {
+    /// Range noise σ of a return at `range` metres: √(floor² + (per_m · range)²).
+    pub fn range_sd(&self, range: f64) -> f64 {
+        self.range_noise_floor_m.hypot(self.range_noise_per_m * range)
+    }
 }
 
 /// Why a scan was rejected; each is counted separately and reported by `status`.

@@ -17,12 +17,22 @@ pub struct ScannerPreset {
     pub max_range_m: f64,
     /// Range noise standard deviation per metre of range.
     pub range_noise_per_m: f64,
+    /// Range noise standard deviation at any range, metres: with the per-metre part, σ(r) =
+    /// √(floor² + (per_m · r)²). Real devices have one (a VLP-16 about 3 cm); a scan header has no
+    /// field for it, so a driver cannot tell the daemon ([`ScannerPreset::with_device_noise`]).
+    pub range_noise_floor_m: f64,
     /// Height of the sensor above the ground, metres.
     pub mount_height_m: f64,
 }
 
 /// Seed-000 / VLP-16 noise: σ = 0.75 cm at 29 m, linear in range.
 pub const SEED000_NOISE_PER_M: f64 = 0.0075 / 29.0;
+/// A Velodyne VLP-16's range noise at any range, metres (its datasheet's typical accuracy,
+/// ±3 cm).
+pub const VLP16_NOISE_FLOOR_M: f64 = 0.03;
+/// An Ouster OS1-64's range noise floor, metres: with the per-metre part 1.5 cm near, 3.5 cm at
+/// 120 m (its datasheet's precision, 1.5–5 cm by range and reflectivity).
+pub const OS1_NOISE_FLOOR_M: f64 = 0.015;
 
 fn linspace(from: f64, to: f64, count: usize) -> Vec<f64> {
     if count == 1 {
@@ -50,6 +60,7 @@ impl ScannerPreset {
             azimuths_rad: linspace(-90f64.to_radians(), 90f64.to_radians(), 91),
             max_range_m: 10.0,
             range_noise_per_m: SEED000_NOISE_PER_M,
+            range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
         }
     }
@@ -62,6 +73,7 @@ impl ScannerPreset {
             azimuths_rad: full_turn(1800),
             max_range_m: 100.0,
             range_noise_per_m: SEED000_NOISE_PER_M,
+            range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
         }
     }
@@ -74,6 +86,7 @@ impl ScannerPreset {
             azimuths_rad: full_turn(columns),
             max_range_m: 120.0,
             range_noise_per_m: SEED000_NOISE_PER_M,
+            range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
         }
     }
@@ -86,6 +99,27 @@ impl ScannerPreset {
             "os1-64" => Some(Self::os1_64(1024)),
             _ => None,
         }
+    }
+
+    /// This preset with its device's own range noise: a floor that holds at every range
+    /// ([`VLP16_NOISE_FLOOR_M`], [`OS1_NOISE_FLOOR_M`]) besides the per-metre part, which alone
+    /// is what its scan headers tell the daemon. Seed 000's scanner keeps the paper's model (no
+    /// floor).
+    pub fn with_device_noise(self) -> Self {
+        let range_noise_floor_m = match self.name {
+            "vlp16" => VLP16_NOISE_FLOOR_M,
+            "os1-64" => OS1_NOISE_FLOOR_M,
+            _ => 0.0,
+        };
+        Self {
+            range_noise_floor_m,
+            ..self
+        }
+    }
+
+    /// Range noise standard deviation at range `r_m`, metres.
+    pub fn range_noise_sd(&self, r_m: f64) -> f64 {
+        self.range_noise_floor_m.hypot(self.range_noise_per_m * r_m)
     }
 
     /// Rays per scan.
@@ -201,7 +235,7 @@ fn cast_one<S: Surface + ?Sized, R: Rng>(
     let true_range = surface
         .cast(pose.translation.vector, dir, preset.max_range_m)
         .filter(|&r| r < preset.max_range_m);
-    let measured = true_range.map(|r| r + preset.range_noise_per_m * r * standard_normal(rng));
+    let measured = true_range.map(|r| r + preset.range_noise_sd(r) * standard_normal(rng));
     SimRay {
         ring: ring as u16,
         column: column as u16,
@@ -214,7 +248,7 @@ fn cast_one<S: Surface + ?Sized, R: Rng>(
 }
 
 /// Casts every ray of `preset` from `pose` (sensor frame in the map frame) and adds range noise
-/// σ = `range_noise_per_m` · r drawn from `rng`.
+/// of σ [`ScannerPreset::range_noise_sd`] drawn from `rng`.
 pub fn simulate_scan<S: Surface + ?Sized, R: Rng>(
     surface: &S,
     pose: &Isometry3<f64>,
@@ -286,5 +320,27 @@ mod tests {
         let mean = draws.iter().sum::<f64>() / n as f64;
         let var = draws.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / n as f64;
         assert!(mean.abs() < 0.03 && (var - 1.0).abs() < 0.04, "{mean} {var}");
+    }
+
+    #[test]
+    fn device_noise_has_its_floor_at_short_range_and_seed000_keeps_the_papers_model() {
+        let terrain = Heightmap::flat(60.0, 0.05, 0.0);
+        let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
+        let preset = ScannerPreset::vlp16().with_device_noise();
+        let rays = simulate_scan(&terrain, &pose, &preset, &mut Pcg64::seed_from_u64(3));
+        let errors: Vec<f64> = rays
+            .iter()
+            .filter_map(|r| Some(r.measured_range_m? - r.true_range_m?))
+            .collect();
+        let sd = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+        assert!(errors.len() > 10_000, "{} returns", errors.len());
+        assert!((sd - VLP16_NOISE_FLOOR_M).abs() < 0.002, "σ {sd}");
+        assert_eq!(
+            ScannerPreset::seed000().with_device_noise(),
+            ScannerPreset::seed000()
+        );
+        let os1 = ScannerPreset::os1_64(1024).with_device_noise();
+        assert!((os1.range_noise_sd(0.0) - 0.015).abs() < 1e-12);
+        assert!(os1.range_noise_sd(120.0) > 0.03 && os1.range_noise_sd(120.0) < 0.036);
     }
 }

@@ -3,7 +3,8 @@
 //! met yet (the full run lists them); until it is, CI guards against regression: pooled coverage
 //! of window, aggregate and occluded answers and the window's median NLPD must stay where
 //! self-calibration brought them (`quick_regressions`; the matrix without the prequential
-//! calibration fails it, as the second test checks).
+//! calibration fails it, and so does the matrix without the learnt noise floor, as the second
+//! and third tests check).
 
 use rangegp_lab::eval::calibration::{quick_regressions, run_calibration, BANDS};
 use rangegp_lab::eval::FamilyOptions;
@@ -56,18 +57,34 @@ fn the_quick_calibration_matrix_does_not_regress() -> anyhow::Result<()> {
     Ok(())
 }
 
-#[test]
-fn the_guard_fails_without_the_prequential_calibration() -> anyhow::Result<()> {
+/// The guard's regressions on the quick matrix with one self-calibration step taken away by
+/// `without` (it edits the defaults).
+fn regressions_without(without: impl FnOnce(&mut Config)) -> anyhow::Result<Vec<String>> {
     let mut config = Config::default();
-    config.gp.prequential_calibration = false;
+    without(&mut config);
     let report = run_calibration(&FamilyOptions {
         config,
         ..FamilyOptions::quick()
     })?;
-    let regressions = quick_regressions(&report);
+    Ok(quick_regressions(&report))
+}
+
+#[test]
+fn the_guard_fails_without_the_prequential_calibration() -> anyhow::Result<()> {
+    let regressions = regressions_without(|c| c.gp.prequential_calibration = false)?;
     anyhow::ensure!(
         regressions.len() >= 2,
         "leave-one-out alone passes the guard: {regressions:?}"
+    );
+    Ok(())
+}
+
+#[test]
+fn the_guard_fails_when_the_devices_noise_floor_is_not_learnt() -> anyhow::Result<()> {
+    let regressions = regressions_without(|c| c.ingest.learn_noise_floor = false)?;
+    anyhow::ensure!(
+        regressions.len() >= 2,
+        "the header's noise model alone passes the guard: {regressions:?}"
     );
     Ok(())
 }

@@ -161,6 +161,7 @@ impl Replay {
         let limits = ValidationLimits {
             max_points: self.config.ingest.max_points,
             max_future_ns: u64::MAX,
+            learn_noise_floor: self.config.ingest.learn_noise_floor,
         };
         // The daemon fuses the scans that waited together, each insert at its own reach: replay
         // insert by insert, as the history records them.

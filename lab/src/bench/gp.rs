@@ -121,6 +121,7 @@ pub(crate) fn scans(
             let limits = ValidationLimits {
                 max_points: 1 << 20,
                 max_future_ns: u64::MAX,
+                learn_noise_floor: true,
             };
             validate(&header, &points, &limits, 0)
                 .map_err(|r| anyhow::anyhow!("simulated scan rejected: {}", r.as_str()))

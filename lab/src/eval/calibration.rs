@@ -48,22 +48,26 @@ pub const COV95: (f64, f64) = (0.92, 0.98);
 pub const COV68: (f64, f64) = (0.60, 0.76);
 
 /// Regression guard of the quick matrix (CI) until every cell meets the bars. Each bound sits
-/// between what the quick matrix measured at 2026-11-23 (seed 0) with the default prequential
-/// calibration and without it (`gp.prequential_calibration = false`, leave-one-out only), so that
-/// losing the calibration fails, and so does widening σ past calibration; the full run's figures
-/// are in docs/EVALUATION.md. Pooled 95 % coverage of window answers outside occluded ground:
-/// measured 0.935, without 0.914.
+/// between what the quick matrix measured at 2026-11-26 (seed 0, the VLP-16 and OS1-64 with their
+/// devices' noise floors) with the defaults and with one self-calibration step taken away: the
+/// prequential calibration (`gp.prequential_calibration = false`, leave-one-out only) or the
+/// learnt noise floor (`ingest.learn_noise_floor = false`), so that losing either fails, and so
+/// does widening σ past calibration; the full run's figures are in docs/EVALUATION.md. Pooled 95 %
+/// coverage of window answers outside occluded ground: measured 0.937, without the prequential
+/// calibration 0.888, without the floor 0.954.
 pub const QUICK_WINDOW_COV95: (f64, f64) = (0.925, 0.98);
-/// Pooled 68 % coverage of the same answers at most (measured 0.789: heavy tails).
-pub const QUICK_WINDOW_MAX_COV68: f64 = 0.85;
-/// Pooled 95 % coverage of aggregate answers outside occluded ground (measured 0.943, without
-/// 0.879).
+/// Pooled 68 % coverage of the same answers at most (measured 0.783, without the floor 0.838:
+/// its noise charged to the maps; heavy tails keep it above 0.68).
+pub const QUICK_WINDOW_MAX_COV68: f64 = 0.81;
+/// Pooled 95 % coverage of aggregate answers outside occluded ground (measured 0.931, without
+/// the prequential calibration 0.862).
 pub const QUICK_AGGREGATE_COV95: (f64, f64) = (0.91, 0.98);
-/// Pooled 95 % coverage of answers about occluded ground at least (measured 0.854, without 0.650).
+/// Pooled 95 % coverage of answers about occluded ground at least (measured 0.814, without the
+/// prequential calibration 0.540).
 pub const QUICK_MIN_OCCLUDED_COV95: f64 = 0.80;
-/// Median NLPD over window cells at most (measured −1.96, without −1.82; before any
-/// self-calibration 1054).
-pub const QUICK_MAX_MEDIAN_NLPD: f64 = -1.9;
+/// Median NLPD over window cells at most (measured −2.03, without the floor −1.88, without the
+/// prequential calibration −2.00; before any self-calibration 1054).
+pub const QUICK_MAX_MEDIAN_NLPD: f64 = -1.95;
 
 /// The answers' pooled coverage at `level` (`cov68` or `cov95`) over `cells` with answers, and
 /// their count.
@@ -286,10 +290,11 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
     } else {
         family()
     };
+    // The devices' own noise: a floor their headers cannot state, which the daemon must learn.
     let sensors = [
         ScannerPreset::seed000(),
-        ScannerPreset::vlp16(),
-        ScannerPreset::os1_64(1024),
+        ScannerPreset::vlp16().with_device_noise(),
+        ScannerPreset::os1_64(1024).with_device_noise(),
     ];
     let mut cells = Vec::new();
     for spec in &terrains {

@@ -179,6 +179,7 @@ fn one_case(
     let limits = ValidationLimits {
         max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
+        learn_noise_floor: opts.config.ingest.learn_noise_floor,
     };
     let map_params = opts.config.map_params();
     let mut world = WorldAggregate::new(params);

@@ -165,6 +165,7 @@ fn map_drive(
     let limits = ValidationLimits {
         max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
+        learn_noise_floor: opts.config.ingest.learn_noise_floor,
     };
     let fitted: Vec<_> = truth
         .par_iter()

@@ -88,6 +88,7 @@ pub fn split_scan<S: Surface + ?Sized, R: Rng>(
             pose,
             max_range_m: preset.max_range_m,
             range_noise_per_m: preset.range_noise_per_m,
+            range_noise_floor_m: preset.range_noise_floor_m,
             rays: train,
         },
         test,

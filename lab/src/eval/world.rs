@@ -115,6 +115,7 @@ pub fn run_world(opts: &FamilyOptions) -> Result<WorldReport> {
     let limits = ValidationLimits {
         max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
+        learn_noise_floor: opts.config.ingest.learn_noise_floor,
     };
     let mut report = WorldReport {
         quick: opts.quick,

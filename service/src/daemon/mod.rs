@@ -316,6 +316,7 @@ impl DaemonBuilder {
                 limits: ValidationLimits {
                     max_points: config.ingest.max_points,
                     max_future_ns: config.ingest.max_future_ms.saturating_mul(1_000_000),
+                    learn_noise_floor: config.ingest.learn_noise_floor,
                 },
                 poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
                 cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),

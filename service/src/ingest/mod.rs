@@ -2,6 +2,7 @@
 //! the queue to the fitter.
 
 pub mod deskew;
+pub mod noise;
 pub mod plausibility;
 pub mod queue;
 pub mod sequence;

@@ -2,6 +2,7 @@
 //! either becomes a [`ScanInput`] or is rejected with exactly one [`RejectReason`].
 
 use super::deskew::{deskew, Twist};
+use super::noise::range_noise_floor;
 use crate::scan::{RayObservation, RejectReason, ScanInput};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use rangegp_proto::scan::{
@@ -16,6 +17,8 @@ pub struct ValidationLimits {
     pub max_points: usize,
     /// How far a scan's stamp may lie ahead of this machine's clock, nanoseconds.
     pub max_future_ns: u64,
+    /// Measure each scan's range noise floor from its returns ([`super::noise`]).
+    pub learn_noise_floor: bool,
 }
 
 /// Largest sensor max range accepted, metres.
@@ -143,6 +146,11 @@ pub fn validate(
         pose: Isometry3::from_parts(Translation3::new(h.px_m, h.py_m, h.pz_m), rotation),
         max_range_m: h.max_range_m,
         range_noise_per_m: h.range_noise_per_m,
+        range_noise_floor_m: if limits.learn_noise_floor {
+            range_noise_floor(points, h.range_noise_per_m).unwrap_or(0.0)
+        } else {
+            0.0
+        },
         rays,
     })
 }
@@ -178,6 +186,7 @@ pub(crate) mod tests {
         ValidationLimits {
             max_points: 100,
             max_future_ns: 1_000_000_000,
+            learn_noise_floor: true,
         }
     }
 

@@ -152,7 +152,7 @@ impl Calibrator {
             let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
             let dir = scan.pose.rotation * Vector3::new(x, y, z);
             let p = origin + dir * ray.range;
-            let sd = scan.range_noise_per_m * ray.range * dir.z;
+            let sd = scan.range_sd(ray.range) * dir.z;
             cells.entry(key(&p)).or_default().push((p, sd * sd));
         }
         let partner = |p: &Vector3<f64>| -> Option<Return> {
@@ -278,7 +278,7 @@ fn stratified_sample(
             continue;
         }
         quota[bin] -= 1;
-        let sd = scan.range_noise_per_m * ray.range * dir.z;
+        let sd = scan.range_sd(ray.range) * dir.z;
         let weight = area_weight(scan, map, ray.inclination, ray.azimuth, ray.range);
         out.push((p, sd * sd, weight));
         if quota.iter().all(|&q| q == 0) {
@@ -393,11 +393,19 @@ fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
 
 /// The σ scale of one group: within the band where 93–97 % of residuals fall inside 1.96 σ and
 /// 62–74 % inside 1 σ, the one nearest to 95 % coverage; where heavy tails leave no such band, the
-/// geometric middle of the two demands. 1 until [`MIN_RESIDUALS`] are held.
+/// geometric middle of the two demands. 1 until [`MIN_RESIDUALS`] are held. Never below 1 where
+/// most of the group's weight lies in residuals whose return noise exceeds the map's own
+/// variance ([`noise_dominated`]): those residuals cannot show a map too unsure, only one too
+/// sure.
 fn scale_of(residuals: &[Residual]) -> f64 {
     if residuals.len() < MIN_RESIDUALS {
         return 1.0;
     }
+    let least = if noise_dominated(residuals) {
+        1.0
+    } else {
+        SCALE_BOUNDS.0
+    };
     let at = |k: f64, share: f64| scale_for_coverage(residuals, k, share);
     let target = at(1.96, 0.95);
     let lo = at(1.96, 0.93).max(at(1.0, 0.62));
@@ -407,7 +415,19 @@ fn scale_of(residuals: &[Residual]) -> f64 {
     } else {
         (lo * hi).sqrt()
     };
-    s.clamp(SCALE_BOUNDS.0, SCALE_BOUNDS.1)
+    s.clamp(least, SCALE_BOUNDS.1)
+}
+
+/// Whether most of the residuals' weight (counts where the weights sum to nothing) lies where
+/// the return's own noise variance exceeds the map's variance. A return 3 cm noisy tests a map
+/// of 5 mm σ hardly at all: any scale of σ down to the smallest covers it, so the bisection would
+/// shrink σ to its bound (seen near a VLP-16, whose 3 cm floor the daemon measures).
+fn noise_dominated(residuals: &[Residual]) -> bool {
+    let total: f64 = residuals.iter().map(|r| r.weight).sum();
+    let weight = |r: &Residual| if total > 0.0 { r.weight } else { 1.0 };
+    let all: f64 = residuals.iter().map(weight).sum();
+    let noisy: f64 = residuals.iter().filter(|r| r.noise_var > r.var).map(weight).sum();
+    noisy > 0.5 * all
 }
 
 /// The smallest scale s (bisection in log s over [`SCALE_BOUNDS`]) at which a `share` of the
@@ -583,6 +603,24 @@ mod tests {
         // 0.05² = 0.03² + 0.04²: the map's σ was right.
         let s = scale_of(&r);
         assert!((s - 1.0).abs() < 0.05, "scale {s}");
+    }
+
+    #[test]
+    fn returns_noisier_than_the_map_widen_its_sigma_but_never_narrow_it() {
+        // 3 cm returns against a map claiming 5 mm whose errors are 2 mm: the residuals are the
+        // returns' noise; no scale below 1 is shown by them.
+        let mut r = residuals(0.0301, 0.005 * 0.005, 1000);
+        for x in &mut r {
+            x.noise_var = 0.03 * 0.03;
+        }
+        assert_eq!(scale_of(&r), 1.0);
+        // The same returns against a map whose errors are 6 cm (claiming 5 mm): widened.
+        let mut r = residuals(0.067, 0.005 * 0.005, 1000);
+        for x in &mut r {
+            x.noise_var = 0.03 * 0.03;
+        }
+        let s = scale_of(&r);
+        assert!((s - 12.0).abs() < 0.6, "scale {s}");
     }
 
     #[test]

@@ -616,8 +616,7 @@ fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize
                 inclination: r.inclination,
                 azimuth: r.azimuth,
                 residual: (t.of(r.range) - t.of(prior.range(&u))) / a,
-                noise_var: ((scan.range_noise_per_m * r.range).powi(2) + params.nugget_m2)
-                    * (slope / a).powi(2),
+                noise_var: (scan.range_sd(r.range).powi(2) + params.nugget_m2) * (slope / a).powi(2),
             }
         })
         .collect()

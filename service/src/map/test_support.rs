@@ -60,6 +60,7 @@ pub(crate) fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
         pose,
         max_range_m: preset.max_range_m,
         range_noise_per_m: preset.range_noise_per_m,
+        range_noise_floor_m: preset.range_noise_floor_m,
         rays: rays
             .iter()
             .filter_map(|r| {

@@ -143,7 +143,7 @@ impl Aggregate for PoseAugmentedGp {
                 .push(self.features(&scan.pose, r.inclination, r.azimuth));
             self.targets.push(r.range - pr.range(&u));
             self.noise
-                .push((scan.range_noise_per_m * r.range).powi(2) + self.params.nugget_m2);
+                .push(scan.range_sd(r.range).powi(2) + self.params.nugget_m2);
             self.inclination_box = (
                 self.inclination_box.0.min(r.inclination),
                 self.inclination_box.1.max(r.inclination),

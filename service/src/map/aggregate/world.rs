@@ -669,7 +669,7 @@ impl WorldAggregate {
             if (p.x - s.x).hypot(p.y - s.y) >= reach {
                 continue;
             }
-            let sd = scan.range_noise_per_m * r.range;
+            let sd = scan.range_sd(r.range);
             let c = self.cell_of(p.x, p.y);
             let (cx, cy) = self.centre(c);
             bins.entry(c).or_default().add(p.x - cx, p.y - cy, p.z, sd * sd);
