@@ -198,13 +198,13 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         answers_equal(&site, &only2, &from2)?,
         "the site does not answer robot 2's ground from its tiles"
     );
-    let status = site.status()?;
+    // The site refreshes its list of robots once a second, its map with every batch: the list
+    // may lag the answers by up to a second.
+    let status = wait_for("the site listing every robot", || {
+        let s = site.status()?;
+        Ok((s.fleet.robots.len() == 3).then_some(s))
+    })?;
     ensure!(status.fleet.storage_answered, "the site found no storage");
-    ensure!(
-        status.fleet.robots.len() == 3,
-        "site status: {:?}",
-        status.fleet.robots
-    );
     // What `rangegp status --site` prints: the storage, then every robot, alive.
     let table = site_table(&status, now_ns());
     println!("{table}");
