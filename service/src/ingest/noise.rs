@@ -4,45 +4,54 @@
 //! have a floor that holds at every range (a VLP-16 about 3 cm, an OS1-64 1.5–3 cm), which no
 //! header field states; a map fitted with millimetre noise near the sensor interpolates 3 cm of
 //! noise as if it were relief, and its σ claims millimetres. So the daemon measures the floor
-//! from every scan: along a ring, the range of three neighbouring columns on smooth ground
-//! changes almost linearly, and the second difference r₀ − 2r₁ + r₂ is then noise alone, of
-//! variance 6σ². Relief that bends within a few centimetres adds to it; two lags tell the two
-//! apart (noise gives both lags the same spread, curvature grows fourfold with twice the lag),
-//! and the nearest returns, where the ground is met steeply and the columns are closest, carry
-//! the estimate. Medians keep edges and objects out.
+//! from every scan: along a ring, the range of neighbouring columns on smooth ground changes
+//! almost linearly, and the second difference r₋₁ − 2r₀ + r₁ is then noise alone, of variance
+//! 6σ². Relief that bends within a few centimetres adds to it; the second difference at lag 2
+//! (r₋₂ − 2r₀ + r₂, five consecutive columns in all) tells the two apart (noise gives both lags
+//! the same spread, curvature four times as much at lag 2), and the nearest returns, where the
+//! ground is met steeply and the columns are closest, carry the estimate. Medians keep edges
+//! and objects out. The floor is capped at [`MAX_FLOOR_M`]: beyond it the scan is not ground a
+//! lidar measures to centimetres, and one such scan must not make every ray of its map noise.
 
 use rangegp_proto::scan::{ScanPoint, FLAG_RING_COLUMN_VALID};
 
-/// Triples needed before a floor is estimated (fewer: the header's model stands).
+/// Samples (a return with two returned neighbours each side along its ring) needed before a
+/// floor is estimated (fewer: the header's model stands).
 pub const MIN_TRIPLES: usize = 200;
-/// Share of the triples, nearest first, that the estimate uses.
+/// Share of the samples, nearest first, that the estimate uses (at least [`MIN_TRIPLES`]).
 const NEAR_SHARE: f64 = 0.25;
-/// A ring × column table larger than this many cells is not built (no estimate).
-const MAX_TABLE_CELLS: usize = 1 << 22;
+/// A ring × column table of more cells than this many per indexed return is not built (no
+/// estimate): ring and column come from the driver, and a stray index must not make the table
+/// large (an organised cloud has about one cell per point).
+const MAX_CELLS_PER_RETURN: usize = 4;
+/// Largest floor reported, metres (lidar datasheets give 1–5 cm).
+pub const MAX_FLOOR_M: f64 = 0.25;
 /// The median of a χ² variable of one degree of freedom: median(d²) = 0.4549 · var(d) for a
 /// zero-mean Gaussian d.
 const CHI2_1_MEDIAN: f64 = 0.454_936;
 
-/// The range noise floor, metres, that the returns of `points` show beyond the header's
-/// `range_noise_per_m` (σ(r)² = floor² + (k·r)²): `None` when the driver gives no ring and
-/// column indices or the scan has fewer than [`MIN_TRIPLES`] neighbouring returns along its
-/// rings.
-pub fn range_noise_floor(points: &[ScanPoint], range_noise_per_m: f64) -> Option<f64> {
-    let indexed = points
+/// The range noise floor, metres (at most [`MAX_FLOOR_M`]), that the returns of `points` show
+/// beyond the header's `range_noise_per_m` (σ(r)² = floor² + (k·r)²); only returns in
+/// (0, `max_range_m`) count, as for the map. `None` when the driver gives no ring and column
+/// indices, when its indices span more than [`MAX_CELLS_PER_RETURN`] cells per return, or when
+/// fewer than [`MIN_TRIPLES`] returns have two returned neighbours each side along their ring.
+pub fn range_noise_floor(points: &[ScanPoint], range_noise_per_m: f64, max_range_m: f64) -> Option<f64> {
+    let returns: Vec<(usize, usize, f64)> = points
         .iter()
-        .filter(|p| p.flags & FLAG_RING_COLUMN_VALID != 0 && p.has_return());
-    let (rings, columns) = indexed.clone().fold((0usize, 0usize), |(r, c), p| {
-        (r.max(p.ring as usize + 1), c.max(p.column as usize + 1))
+        .filter(|p| p.flags & FLAG_RING_COLUMN_VALID != 0 && p.has_return())
+        .map(|p| (p.ring as usize, p.column as usize, p.range_m as f64))
+        .filter(|&(_, _, r)| r.is_finite() && r > 0.0 && r < max_range_m)
+        .collect();
+    let (rings, columns) = returns.iter().fold((0, 0), |(r, c), &(ring, column, _)| {
+        (r.max(ring + 1), c.max(column + 1))
     });
-    if rings == 0 || rings * columns > MAX_TABLE_CELLS {
+    let cells = rings.checked_mul(columns)?;
+    if cells == 0 || cells > MAX_CELLS_PER_RETURN.saturating_mul(returns.len()) {
         return None;
     }
-    let mut table = vec![f64::NAN; rings * columns];
-    for p in indexed {
-        let r = p.range_m as f64;
-        if r.is_finite() && r > 0.0 {
-            table[p.ring as usize * columns + p.column as usize] = r;
-        }
+    let mut table = vec![f64::NAN; cells];
+    for &(ring, column, r) in &returns {
+        table[ring * columns + column] = r;
     }
     // (range, lag-1 d², lag-2 d²) of each column with both neighbours at both lags returned.
     let mut triples: Vec<(f64, f64, f64)> = Vec::new();
@@ -77,7 +86,7 @@ pub fn range_noise_floor(points: &[ScanPoint], range_noise_per_m: f64) -> Option
     };
     let total = d2.max(0.0) / (6.0 * CHI2_1_MEDIAN);
     let stated = median(&|t| (range_noise_per_m * t.0).powi(2));
-    Some((total - stated).max(0.0).sqrt())
+    Some((total - stated).max(0.0).sqrt().min(MAX_FLOOR_M))
 }
 
 #[cfg(test)]
@@ -113,8 +122,12 @@ mod tests {
             (ScannerPreset::vlp16().with_device_noise(), 0.03),
             (ScannerPreset::os1_64(1024).with_device_noise(), 0.015),
         ] {
-            let floor = range_noise_floor(&points(&craters, &preset, 1), preset.range_noise_per_m)
-                .expect("an estimate");
+            let floor = range_noise_floor(
+                &points(&craters, &preset, 1),
+                preset.range_noise_per_m,
+                preset.max_range_m,
+            )
+            .expect("an estimate");
             assert!(
                 (floor - want).abs() < 0.07 * want,
                 "{}: {floor} for {want}",
@@ -124,8 +137,12 @@ mod tests {
         // The paper's scanner (2° columns over craters) and a VLP-16 without a floor: under a
         // millimetre (measured 0.3 and 0.2), against the centimetres of a device.
         for preset in [ScannerPreset::seed000(), ScannerPreset::vlp16()] {
-            let floor = range_noise_floor(&points(&craters, &preset, 2), preset.range_noise_per_m)
-                .expect("an estimate");
+            let floor = range_noise_floor(
+                &points(&craters, &preset, 2),
+                preset.range_noise_per_m,
+                preset.max_range_m,
+            )
+            .expect("an estimate");
             assert!(floor < 0.001, "{}: {floor}", preset.name);
         }
     }
@@ -138,7 +155,36 @@ mod tests {
         for p in &mut pts {
             p.flags = 0;
         }
-        assert_eq!(range_noise_floor(&pts, preset.range_noise_per_m), None);
-        assert_eq!(range_noise_floor(&pts[..0], 0.0), None);
+        assert_eq!(range_noise_floor(&pts, preset.range_noise_per_m, 100.0), None);
+        assert_eq!(range_noise_floor(&pts[..0], 0.0, 100.0), None);
+    }
+
+    #[test]
+    fn stray_indices_far_returns_and_wild_ranges_neither_grow_the_table_nor_the_floor() {
+        let craters = Heightmap::cratered(4, &CraterParams::sized(40.0));
+        let preset = ScannerPreset::vlp16().with_device_noise();
+        let good = points(&craters, &preset, 4);
+        let k = preset.range_noise_per_m;
+        // One point claiming column 65 535 would make a 16 × 65 536 table: refused.
+        let mut stray = good.clone();
+        stray[0].column = u16::MAX;
+        stray[0].ring = u16::MAX;
+        assert_eq!(range_noise_floor(&stray, k, 100.0), None);
+        // Returns at or beyond the max range (junk a driver may send) are not samples.
+        let mut junk = good.clone();
+        for (i, p) in junk.iter_mut().enumerate() {
+            p.range_m = if i % 2 == 0 {
+                1e30
+            } else {
+                150.0 + (i % 7) as f32 * 40.0
+            };
+        }
+        assert_eq!(range_noise_floor(&junk, k, 100.0), None);
+        // Ranges that jump by metres from column to column (not ground): capped.
+        let mut wild = good;
+        for (i, p) in wild.iter_mut().enumerate() {
+            p.range_m = 5.0 + (i % 5) as f32 * 8.0;
+        }
+        assert_eq!(range_noise_floor(&wild, k, 100.0), Some(MAX_FLOOR_M));
     }
 }

@@ -147,7 +147,7 @@ pub fn validate(
         max_range_m: h.max_range_m,
         range_noise_per_m: h.range_noise_per_m,
         range_noise_floor_m: if limits.learn_noise_floor {
-            range_noise_floor(points, h.range_noise_per_m).unwrap_or(0.0)
+            range_noise_floor(points, h.range_noise_per_m, h.max_range_m).unwrap_or(0.0)
         } else {
             0.0
         },
