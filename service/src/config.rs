@@ -759,6 +759,16 @@ impl Config {
         }
     }
 
+    /// The bounds `[ingest]` sets on every scan it validates.
+    pub fn validation_limits(&self) -> crate::ingest::ValidationLimits {
+        let i = &self.ingest;
+        crate::ingest::ValidationLimits {
+            max_points: i.max_points,
+            max_future_ns: i.max_future_ms.saturating_mul(1_000_000),
+            learn_noise_floor: i.learn_noise_floor,
+        }
+    }
+
     /// The pose plausibility limits of `[ingest]`.
     pub fn pose_limits(&self) -> crate::ingest::PoseLimits {
         let i = &self.ingest;

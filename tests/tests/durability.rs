@@ -159,9 +159,8 @@ impl Replay {
         history: &[rangegp_service::map::aggregate::world::ScanRef],
     ) -> Result<()> {
         let limits = ValidationLimits {
-            max_points: self.config.ingest.max_points,
             max_future_ns: u64::MAX,
-            learn_noise_floor: self.config.ingest.learn_noise_floor,
+            ..self.config.validation_limits()
         };
         // The daemon fuses the scans that waited together, each insert at its own reach: replay
         // insert by insert, as the history records them.

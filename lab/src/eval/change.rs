@@ -177,9 +177,8 @@ fn one_case(
         .filter(|&c| moved(c).is_some_and(|d| d > CHANGED_M))
         .collect();
     let limits = ValidationLimits {
-        max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
-        learn_noise_floor: opts.config.ingest.learn_noise_floor,
+        ..opts.config.validation_limits()
     };
     let map_params = opts.config.map_params();
     let mut world = WorldAggregate::new(params);

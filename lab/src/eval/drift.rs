@@ -163,9 +163,8 @@ fn map_drive(
 ) -> Result<(WorldAggregate, Ledger)> {
     let params = opts.config.map_params();
     let limits = ValidationLimits {
-        max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
-        learn_noise_floor: opts.config.ingest.learn_noise_floor,
+        ..opts.config.validation_limits()
     };
     let fitted: Vec<_> = truth
         .par_iter()

@@ -75,9 +75,8 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         bar.finish_and_clear();
     }
     let limits = ValidationLimits {
-        max_points: config.ingest.max_points,
         max_future_ns: u64::MAX,
-        learn_noise_floor: config.ingest.learn_noise_floor,
+        ..config.validation_limits()
     };
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());

@@ -113,9 +113,8 @@ pub fn run_world(opts: &FamilyOptions) -> Result<WorldReport> {
     let motion = issue_motion();
     let params = opts.config.map_params();
     let limits = ValidationLimits {
-        max_points: opts.config.ingest.max_points,
         max_future_ns: u64::MAX,
-        learn_noise_floor: opts.config.ingest.learn_noise_floor,
+        ..opts.config.validation_limits()
     };
     let mut report = WorldReport {
         quick: opts.quick,

@@ -16,7 +16,7 @@ use crate::exporter::Exporter;
 use crate::fleet::assemble::{self, SiteSettings};
 use crate::fleet::publish::{self, Departures, TileSettings};
 use crate::ingest::subscriber::IngestSettings;
-use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue, ValidationLimits};
+use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue};
 use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::{LocalRangeMap, MapSnapshot};
@@ -313,11 +313,7 @@ impl DaemonBuilder {
         daemon.ingest = Some(spawn_ingest(
             IngestSettings {
                 service_name: config.scan_service_name(),
-                limits: ValidationLimits {
-                    max_points: config.ingest.max_points,
-                    max_future_ns: config.ingest.max_future_ms.saturating_mul(1_000_000),
-                    learn_noise_floor: config.ingest.learn_noise_floor,
-                },
+                limits: config.validation_limits(),
                 poll_interval: Duration::from_millis(config.ingest.poll_interval_ms),
                 cleanup_interval: Duration::from_secs(config.ingest.cleanup_interval_s),
                 sequence_restart_window: config.ingest.sequence_restart_window,

@@ -418,31 +418,39 @@ fn scale_of(residuals: &[Residual]) -> f64 {
     s.clamp(least, SCALE_BOUNDS.1)
 }
 
-/// Whether most of the residuals' weight (counts where the weights sum to nothing) lies where
-/// the return's own noise variance exceeds the map's variance. A return 3 cm noisy tests a map
-/// of 5 mm σ hardly at all: any scale of σ down to the smallest covers it, so the bisection would
-/// shrink σ to its bound (seen near a VLP-16, whose 3 cm floor the daemon measures).
+/// Whether most of the residuals' weight ([`weight_in`]) lies where the return's own noise
+/// variance exceeds the map's variance. A return 3 cm noisy tests a map of 5 mm σ hardly at all:
+/// any scale of σ down to the smallest covers it, so the bisection would shrink σ to its bound
+/// (seen near a VLP-16, whose 3 cm floor the daemon measures).
 fn noise_dominated(residuals: &[Residual]) -> bool {
-    let total: f64 = residuals.iter().map(|r| r.weight).sum();
-    let weight = |r: &Residual| if total > 0.0 { r.weight } else { 1.0 };
-    let all: f64 = residuals.iter().map(weight).sum();
-    let noisy: f64 = residuals.iter().filter(|r| r.noise_var > r.var).map(weight).sum();
+    let weight = weight_in(residuals);
+    let all: f64 = residuals.iter().map(&weight).sum();
+    let noisy: f64 = residuals
+        .iter()
+        .filter(|r| r.noise_var > r.var)
+        .map(&weight)
+        .sum();
     noisy > 0.5 * all
+}
+
+/// Each residual's weight among `residuals`: the ground area it stands for, or 1 each where the
+/// weights sum to nothing (every return on a vertical face).
+fn weight_in(residuals: &[Residual]) -> impl Fn(&Residual) -> f64 {
+    let by_area = residuals.iter().map(|r| r.weight).sum::<f64>() > 0.0;
+    move |r: &Residual| if by_area { r.weight } else { 1.0 }
 }
 
 /// The smallest scale s (bisection in log s over [`SCALE_BOUNDS`]) at which a `share` of the
 /// residuals lies within k·sqrt(s²·var + noise_var).
 fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
-    // Weights that sum to nothing (every return on a vertical face) fall back to counts.
-    let total: f64 = residuals.iter().map(|r| r.weight).sum();
-    let weight = |r: &Residual| if total > 0.0 { r.weight } else { 1.0 };
-    let need = share * residuals.iter().map(weight).sum::<f64>();
+    let weight = weight_in(residuals);
+    let need = share * residuals.iter().map(&weight).sum::<f64>();
     let covered = |s: f64| {
         let s2 = s * s;
         residuals
             .iter()
             .filter(|r| r.r2 <= k * k * (s2 * r.var + r.noise_var))
-            .map(weight)
+            .map(&weight)
             .sum::<f64>()
     };
     let (mut lo, mut hi) = (SCALE_BOUNDS.0.ln(), SCALE_BOUNDS.1.ln());
