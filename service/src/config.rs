@@ -256,6 +256,10 @@ pub struct GpConfig {
     /// Scale σ per source and range bin by how well the maps predicted each next scan's returns
     /// (default on; docs/EVALUATION.md "Calibration").
     pub prequential_calibration: bool,
+    /// Add to window answers' σ the relief their data cannot see, learnt from each scan's own
+    /// returns by the distance to the nearest datum (needs the prequential calibration). Off by
+    /// default until rays are calibrated with it (docs/EVALUATION.md "Calibration", step 6).
+    pub unseen_relief: bool,
 }
 
 /// Online hyperparameter learning (a thread of its own, never on the ingest path).
@@ -441,6 +445,7 @@ impl Default for GpConfig {
             online: OnlineConfig::default(),
             variance_calibration: crate::map::tiles::VarianceCalibration::LocalLeaveOneOut,
             prequential_calibration: true,
+            unseen_relief: false,
         }
     }
 }

@@ -148,7 +148,13 @@ fn layers_follow_the_terrain_mark_a_box_lethal_and_a_point_slope_equals_its_cell
         "the box's edge: step {:?}",
         layer(Layer::Step)[k]
     );
-    assert!(layer(Layer::StepRisk)[k].expect("observed") > 0.9);
+    assert!(
+        layer(Layer::StepRisk)[k].expect("observed") > 0.9,
+        "the box's edge: step {:?} ± {:?}, risk {:?}",
+        layer(Layer::Step)[k],
+        layer(Layer::StepSigma)[k],
+        layer(Layer::StepRisk)[k]
+    );
     Ok(())
 }
 

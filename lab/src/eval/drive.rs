@@ -80,7 +80,10 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
     };
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());
-    let mut calibrator = config.gp.prequential_calibration.then(Calibrator::default);
+    let mut calibrator = config
+        .gp
+        .prequential_calibration
+        .then(|| Calibrator::new(config.gp.unseen_relief));
     let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
     for (header, points) in &messages {
         let input = validate(header, points, &limits, 0)

@@ -24,6 +24,8 @@ pub(super) struct FitOutputs {
     pub aggregate: Option<Arc<AggregateFeed>>,
     /// Learn σ scales from each next scan (`gp.prequential_calibration`).
     pub calibrate: bool,
+    /// Learn the unseen relief with them (`gp.unseen_relief`).
+    pub relief: bool,
     /// Where a [`MapUpdate`] goes when a scan's map is published.
     pub updates: zenoh::pubsub::Publisher<'static>,
 }
@@ -38,7 +40,7 @@ pub(super) fn fit_loop(
     shutdown: &Shutdown,
 ) {
     let mut window = Window::new(capacity);
-    let mut calibrator = outputs.calibrate.then(Calibrator::default);
+    let mut calibrator = outputs.calibrate.then(|| Calibrator::new(outputs.relief));
     while !shutdown.is_triggered() {
         let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
             continue;

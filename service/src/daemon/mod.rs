@@ -282,6 +282,7 @@ impl DaemonBuilder {
                 learner: learner_feed,
                 aggregate: aggregate_feed,
                 calibrate: config.gp.prequential_calibration,
+                relief: config.gp.unseen_relief,
                 updates,
             };
             daemon.fitter = Some(spawn("rangegp-fit", move || {

@@ -15,6 +15,7 @@
 
 use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
 use super::query::{self, Answerer};
+use super::relief::ReliefLearner;
 use super::scales::{
     bin_of, class_of, BinScale, ScaleTable, SigmaScales, TailShape, BINS, CLASSES, SIGMA_GROUPS,
 };
@@ -42,13 +43,18 @@ pub const SCALE_BOUNDS: (f64, f64) = (0.1, 100.0);
 
 /// One tested answer: squared residual, the answer's variance and the return's own noise
 /// variance along z, m².
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, Default)]
 struct Residual {
     r2: f64,
     var: f64,
     noise_var: f64,
     /// Ground area the return stands for, relative ([`area_weight`]).
     weight: f64,
+    /// The answer's distance to its map's nearest datum, metres.
+    data_m: f64,
+    /// The relief variance unseen at that distance (window answers; 0 for the aggregate's), m²:
+    /// added to the scaled variance, as the snapshot adds it.
+    relief_var: f64,
 }
 
 /// Recent residuals of one source, by grazing class and range bin.
@@ -60,10 +66,22 @@ pub struct Calibrator {
     window: Residuals,
     aggregate: Residuals,
     correlation: CorrelationLearner,
+    relief: ReliefLearner,
+    /// Whether the unseen relief is learnt and added (`gp.unseen_relief`).
+    learn_relief: bool,
     scales: SigmaScales,
 }
 
 impl Calibrator {
+    /// A calibrator with nothing learnt; with `learn_relief`, it also learns the relief unseen
+    /// between data ([`super::relief`]) and adds it to window answers' σ.
+    pub fn new(learn_relief: bool) -> Self {
+        Self {
+            learn_relief,
+            ..Self::default()
+        }
+    }
+
     /// The current scales.
     pub fn scales(&self) -> SigmaScales {
         self.scales
@@ -84,6 +102,11 @@ impl Calibrator {
         let Some(newest) = snapshot.maps().first() else {
             return 0;
         };
+        let relief_before = self.scales.relief;
+        if self.learn_relief {
+            self.relief.observe(scan, map);
+            self.scales.relief = self.relief.relief();
+        }
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
         let answers = query::par_map(
@@ -114,11 +137,19 @@ impl Calibrator {
                 var: a.estimate.var.max(1e-14),
                 noise_var,
                 weight,
+                data_m: a.estimate.data_m,
+                relief_var: 0.0,
             });
             touched[which] = true;
             answered += 1;
         }
-        if touched[0] {
+        // The relief learnt from this scan applies to every held window residual (the new ones
+        // included), and the window's scales are refitted under it.
+        let relief = self.scales.relief;
+        for r in self.window.iter_mut().flatten().flatten() {
+            r.relief_var = relief.var_at(r.data_m);
+        }
+        if touched[0] || relief != relief_before {
             self.scales.window = table_of(&self.window);
         }
         if touched[1] {
@@ -177,8 +208,8 @@ impl Calibrator {
                 Answerer::Aggregate => Source::Aggregate,
                 Answerer::Window(_) => Source::Window,
             };
-            let f = self.scales.factor(source, a.rho_m, &a.estimate);
-            Some((p.z - a.estimate.z, a.estimate.var.max(0.0).sqrt() * f))
+            let var = self.scales.variance(source, a.rho_m, &a.estimate);
+            Some((p.z - a.estimate.z, var.sqrt()))
         };
         query::par_map(sample, rayon::current_num_threads(), |&(p, noise_p, _)| {
             let (q, noise_q) = partner(&p)?;
@@ -211,7 +242,7 @@ impl Calibrator {
                 for (b, q) in bins.iter().enumerate() {
                     for r in q {
                         let f = table[c][b].factor(r.var.sqrt());
-                        let latent = f * f * r.var;
+                        let latent = f * f * r.var + r.relief_var;
                         if r.noise_var > LATENT_SHARE * latent {
                             continue;
                         }
@@ -421,7 +452,8 @@ fn scale_of(residuals: &[Residual]) -> f64 {
 /// Whether most of the residuals' weight ([`weight_in`]) lies where the return's own noise
 /// variance exceeds the map's variance. A return 3 cm noisy tests a map of 5 mm σ hardly at all:
 /// any scale of σ down to the smallest covers it, so the bisection would shrink σ to its bound
-/// (seen near a VLP-16, whose 3 cm floor the daemon measures).
+/// (seen near a VLP-16, whose 3 cm floor the daemon measures). The unseen relief does not count
+/// here: it is part of the answer's σ, so a scale it makes small still leaves σ covering.
 fn noise_dominated(residuals: &[Residual]) -> bool {
     let weight = weight_in(residuals);
     let all: f64 = residuals.iter().map(&weight).sum();
@@ -441,7 +473,7 @@ fn weight_in(residuals: &[Residual]) -> impl Fn(&Residual) -> f64 {
 }
 
 /// The smallest scale s (bisection in log s over [`SCALE_BOUNDS`]) at which a `share` of the
-/// residuals lies within k·sqrt(s²·var + noise_var).
+/// residuals lies within k·sqrt(s²·var + relief_var + noise_var).
 fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
     let weight = weight_in(residuals);
     let need = share * residuals.iter().map(&weight).sum::<f64>();
@@ -449,7 +481,7 @@ fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
         let s2 = s * s;
         residuals
             .iter()
-            .filter(|r| r.r2 <= k * k * (s2 * r.var + r.noise_var))
+            .filter(|r| r.r2 <= k * k * (s2 * r.var + r.relief_var + r.noise_var))
             .map(&weight)
             .sum::<f64>()
     };
@@ -510,7 +542,7 @@ mod tests {
         let preset = rangegp_sim::ScannerPreset::seed000();
         let path = rangegp_sim::Path::wander(3, &terrain, 12, 0.5, 0.2);
         let mut window = Window::new(16);
-        let mut calibrator = Calibrator::default();
+        let mut calibrator = Calibrator::new(true);
         let mut snapshot = MapSnapshot::default();
         for i in 0..12 {
             let mut scan = scan_of(&terrain, path.pose(&terrain, i, preset.mount_height_m));
@@ -546,7 +578,7 @@ mod tests {
 
     #[test]
     fn before_the_first_map_nothing_is_learnt() {
-        let mut calibrator = Calibrator::default();
+        let mut calibrator = Calibrator::new(true);
         let scan = scan_over_flat(0.0, 1);
         let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
         assert_eq!(calibrator.observe(&MapSnapshot::default(), &scan, &map), 0);
@@ -561,6 +593,7 @@ mod tests {
             var: 1e-6,
             noise_var: 0.0,
             weight: 1.0,
+            ..Residual::default()
         };
         // Only range bins 1 and 4 of the last class have residuals: errors 2 mm and 20 mm.
         residuals[CLASSES - 1][1] = (0..200)
@@ -590,6 +623,7 @@ mod tests {
                     var,
                     noise_var: 0.0,
                     weight: 1.0,
+                    ..Residual::default()
                 }
             })
             .collect()

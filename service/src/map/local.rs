@@ -1,5 +1,6 @@
 //! The local range map of one scan: range as a GP over (inclination, azimuth) (seed 000 §III-A).
 
+use super::data_index::DataIndex;
 use super::embedding::Embedding;
 use super::fov::FieldOfView;
 use super::prior::Prior;
@@ -131,6 +132,9 @@ pub struct HeightEstimate {
     /// Per-axis σ (x, y, z) of the surface point along the sensor's ray there, metres (seed 000
     /// Table I); a height field's is (0, 0, σ_z).
     pub point_sd: [f64; 3],
+    /// Horizontal distance from the answer to the nearest datum of the map that gave it, metres
+    /// (0 for a height field's fused cells): what the GP's angular σ does not see.
+    pub data_m: f64,
 }
 
 /// A predicted hit along a ray.
@@ -185,6 +189,10 @@ pub struct LocalRangeMap {
     generation: u64,
     /// The kernel's length scale, kernel-input metres (what provenance is graded against).
     length_scale: f64,
+    /// The training returns in the sensor's frame (a corrected pose re-indexes them).
+    returns: Arc<Vec<[f32; 3]>>,
+    /// Where the training returns lie on the map's ground, for [`HeightEstimate::data_m`].
+    data: Arc<DataIndex>,
 }
 
 /// Angle between a sensor's z axis and the map's, radians.
@@ -214,6 +222,9 @@ impl LocalRangeMap {
         )?;
         gp.calibrate(params.variance_calibration);
         let angles: Vec<(f64, f64)> = scan.rays.iter().map(|r| (r.inclination, r.azimuth)).collect();
+        let returns: Vec<[f32; 3]> = training_returns(scan, params.max_training_rays)
+            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
         Ok(Self {
             publisher_id: scan.publisher_id,
             sequence: scan.sequence,
@@ -227,6 +238,8 @@ impl LocalRangeMap {
             gp: Arc::new(gp),
             generation: 0,
             length_scale: params.kernel.length_scale,
+            data: Arc::new(index_of(&returns, &scan.pose)),
+            returns: Arc::new(returns),
         })
     }
 
@@ -237,6 +250,7 @@ impl LocalRangeMap {
             pose,
             tilt: tilt_of(&pose),
             generation,
+            data: Arc::new(index_of(&self.returns, &pose)),
             ..self.clone()
         }
     }
@@ -255,6 +269,11 @@ impl LocalRangeMap {
     pub fn with_generation(mut self, generation: u64) -> Self {
         self.generation = generation;
         self
+    }
+
+    /// Where this map's training returns lie in the map frame.
+    pub fn data(&self) -> &DataIndex {
+        &self.data
     }
 
     /// Sensor position in the map frame.
@@ -417,6 +436,7 @@ impl LocalRangeMap {
             var,
             grazing,
             point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
+            data_m: self.data.distance(x, y),
         })
     }
 
@@ -599,13 +619,37 @@ fn prior_of(scan: &ScanInput, params: &MapParams) -> Prior {
     }
 }
 
+/// The even stride that keeps at most `cap` of `scan`'s rays.
+fn training_stride(scan: &ScanInput, cap: usize) -> usize {
+    scan.rays.len().div_ceil(cap.max(1)).max(1)
+}
+
+/// The sensor-frame points of the rays [`training_rays`] takes (the same stride).
+fn training_returns(scan: &ScanInput, cap: usize) -> impl Iterator<Item = Vector3<f64>> + '_ {
+    scan.rays
+        .iter()
+        .step_by(training_stride(scan, cap))
+        .map(|r| unit(r.inclination, r.azimuth) * r.range)
+}
+
+/// The map-frame ground index of sensor-frame `returns` seen from `pose`.
+fn index_of(returns: &[[f32; 3]], pose: &Isometry3<f64>) -> DataIndex {
+    let ground: Vec<[f64; 3]> = returns
+        .iter()
+        .map(|p| {
+            let m = pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            [m.x, m.y, m.z]
+        })
+        .collect();
+    DataIndex::new(&ground)
+}
+
 /// At most `cap` returned rays of `scan` (an even stride) as training rays: residuals from the
 /// prior divided by the prior's amplitude, noise variances divided by its square.
 fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize) -> Vec<TrainingRay> {
-    let stride = scan.rays.len().div_ceil(cap.max(1)).max(1);
     scan.rays
         .iter()
-        .step_by(stride)
+        .step_by(training_stride(scan, cap))
         .map(|r| {
             let u = unit(r.inclination, r.azimuth);
             let a = prior.amplitude(&u);

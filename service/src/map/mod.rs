@@ -4,6 +4,7 @@ pub mod aggregate;
 pub mod calibration;
 pub mod correction;
 pub mod correlation;
+pub mod data_index;
 pub mod elevation_gp;
 pub mod embedding;
 pub mod fov;
@@ -12,6 +13,7 @@ pub mod layers;
 pub mod local;
 pub mod prior;
 pub mod query;
+pub mod relief;
 pub mod root;
 pub mod scales;
 #[cfg(test)]

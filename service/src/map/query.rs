@@ -148,10 +148,11 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         Answerer::Window(_) => Source::Window,
         Answerer::Aggregate => Source::Aggregate,
     };
-    let factor = |a: &RawAnswer| snapshot.scales.factor(source, a.rho_m, &a.estimate);
     let calibrated = |a: &RawAnswer| {
-        let s = factor(a);
-        (a.estimate.z, a.estimate.var * s * s)
+        (
+            a.estimate.z,
+            snapshot.scales.variance(source, a.rho_m, &a.estimate),
+        )
     };
     let (z1, v1) = calibrated(&first);
     let (z, var) = match second {
@@ -172,7 +173,7 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         return refused(Refusal::TooUncertain);
     }
     // The primary answer's (weight ≥ ½ in a blend): its sensor's ray and its data.
-    let s = factor(&first);
+    let s = sd_ratio(snapshot, source, &first);
     ElevationItem {
         z_m: Some(z),
         z_var_m2: Some(var),
@@ -293,12 +294,31 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     }
 }
 
-/// The snapshot's σ calibration factor for `source` at map point `p`: the factor the height
-/// answer there gets (a ray's range uncertainty is the height's seen along the ray); 1 where no
-/// map answers.
+/// The snapshot's σ calibration for `source` at map point `p`, as a factor on σ: the one the
+/// height answer there gets ([`sd_ratio`]; a ray's range uncertainty is the height's seen along
+/// the ray); 1 where no map answers.
 fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
-    raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| snapshot.scales.factor(source, a.rho_m, &a.estimate))
+    raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| sd_ratio(snapshot, source, &a))
 }
+
+/// The calibrated σ of `answer` (scaled, plus the unseen relief) over the map's own, at least the
+/// scale alone and at most [`MAX_RAY_FACTOR`] (or the scale, if larger): what a point's and a
+/// ray's σ, which the maps give along the sensor's ray, are multiplied by so that they stay
+/// calibrated like the height's.
+fn sd_ratio(snapshot: &MapSnapshot, source: Source, answer: &RawAnswer) -> f64 {
+    let factor = snapshot.scales.factor(source, answer.rho_m, &answer.estimate);
+    let raw = answer.estimate.var;
+    if raw > 0.0 {
+        let calibrated = snapshot.scales.variance(source, answer.rho_m, &answer.estimate);
+        (calibrated / raw).sqrt().min(MAX_RAY_FACTOR).max(factor)
+    } else {
+        factor
+    }
+}
+
+/// Largest factor the unseen relief may put on a ray's σ (a map sure to a micrometre at a point
+/// far from its data would otherwise scale its range variance without bound).
+pub const MAX_RAY_FACTOR: f64 = 100.0;
 
 /// Maps `f` over `items` on up to `threads` scoped threads, keeping order.
 pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {

@@ -77,11 +77,56 @@ const GRAZING_CENTRES: [f64; CLASSES] = [0.354, 0.612, 1.0];
 /// σ scales of one source, by grazing class and range bin.
 pub type ScaleTable = [[BinScale; BINS]; CLASSES];
 
-/// Per (source, grazing class, range bin) σ scales; what a snapshot applies to its answers.
+/// Upper edges of the bins of an answer's distance to the nearest datum
+/// ([`HeightEstimate::data_m`]), metres; the last bin is open-ended.
+pub const DATA_EDGES_M: [f64; 7] = [0.1, 0.2, 0.4, 0.8, 1.6, 3.2, 6.4];
+/// Number of data-distance bins.
+pub const DATA_BINS: usize = DATA_EDGES_M.len() + 1;
+
+/// The variance of the relief an answer has not seen, by its distance to the nearest datum of
+/// its map ([`HeightEstimate::data_m`]), learnt from the scans' own returns
+/// ([`super::relief`]): added to window answers' calibrated variance. Linear in ln d between
+/// the bins' centres, as d² below the first (no relief at a datum), the last bin's beyond.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Relief {
+    /// Variance at each bin's centre, m².
+    pub var_m2: [f64; DATA_BINS],
+}
+
+impl Relief {
+    /// The relief variance at distance `data_m` from the nearest datum, m².
+    pub fn var_at(&self, data_m: f64) -> f64 {
+        let first = data_centre_m(0);
+        if data_m.is_nan() || data_m <= 0.0 {
+            return 0.0;
+        }
+        if data_m < first {
+            return self.var_m2[0] * (data_m / first).powi(2);
+        }
+        let centres: [f64; DATA_BINS] = std::array::from_fn(data_centre_m);
+        let (b0, b1, w) = bracket(data_m, &centres);
+        self.var_m2[b0] * (1.0 - w) + self.var_m2[b1] * w
+    }
+}
+
+/// The centre of data-distance bin `bin`, metres.
+pub fn data_centre_m(bin: usize) -> f64 {
+    centre_of(&DATA_EDGES_M, bin)
+}
+
+/// The data-distance bin of `data_m`.
+pub fn data_bin_of(data_m: f64) -> usize {
+    DATA_EDGES_M.iter().take_while(|&&e| data_m >= e).count()
+}
+
+/// Per (source, grazing class, range bin) σ scales, and for window answers the relief unseen
+/// between their data; what a snapshot applies to its answers.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct SigmaScales {
     /// Window answers.
     pub window: ScaleTable,
+    /// Window answers' unseen relief, by distance to the nearest datum.
+    pub relief: Relief,
     /// Aggregate answers (range from the newest sensor position; all in the last class).
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
@@ -200,15 +245,34 @@ impl SigmaScales {
             Source::Aggregate => &self.aggregate,
             _ => &self.window,
         };
-        let sd = estimate.var.max(0.0).sqrt();
-        let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
-        let (b0, b1, wb) = bracket(rho_m, &rho_centres);
-        let (c0, c1, wc) = bracket(estimate.grazing, &GRAZING_CENTRES);
-        let ln = |c: usize, b: usize| table[c][b].factor(sd).ln();
-        let lower = ln(c0, b0) * (1.0 - wb) + ln(c0, b1) * wb;
-        let upper = ln(c1, b0) * (1.0 - wb) + ln(c1, b1) * wb;
-        (lower * (1.0 - wc) + upper * wc).exp()
+        table_factor(table, rho_m, estimate.grazing, estimate.var)
     }
+
+    /// The calibrated variance of `estimate` (of `source`, at horizontal distance `rho_m`): its
+    /// own scaled by [`Self::factor`] squared, plus for a window answer the relief unseen at its
+    /// distance from data.
+    pub fn variance(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+        let f = self.factor(source, rho_m, estimate);
+        let relief = match source {
+            Source::Aggregate => 0.0,
+            _ => self.relief.var_at(estimate.data_m),
+        };
+        estimate.var.max(0.0) * f * f + relief
+    }
+}
+
+/// The factor of `table` for an answer of variance `var` and grazing
+/// fraction `grazing` at horizontal distance `rho_m`: bilinear in (ln ρ, ln g) between the
+/// centres of neighbouring range bins and grazing classes.
+fn table_factor(table: &ScaleTable, rho_m: f64, grazing: f64, var: f64) -> f64 {
+    let sd = var.max(0.0).sqrt();
+    let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
+    let (b0, b1, wb) = bracket(rho_m, &rho_centres);
+    let (c0, c1, wc) = bracket(grazing, &GRAZING_CENTRES);
+    let ln = |c: usize, b: usize| table[c][b].factor(sd).ln();
+    let lower = ln(c0, b0) * (1.0 - wb) + ln(c0, b1) * wb;
+    let upper = ln(c1, b0) * (1.0 - wb) + ln(c1, b1) * wb;
+    (lower * (1.0 - wc) + upper * wc).exp()
 }
 
 /// The neighbouring `centres` (ascending) around `x` and the weight of the upper, linear in ln x;
@@ -225,13 +289,18 @@ fn bracket(x: f64, centres: &[f64]) -> (usize, usize, f64) {
     (upper - 1, upper, (x.max(1e-12).ln() - lo) / (hi - lo))
 }
 
-/// A range bin's centre: the geometric middle of its edges (the first bin's: half its edge; the
-/// open last bin's: √2 × its lower edge).
+/// A range bin's centre ([`centre_of`] the range edges).
 fn bin_centre_m(bin: usize) -> f64 {
+    centre_of(&RANGE_EDGES_M, bin)
+}
+
+/// The centre of bin `bin` of the bins `edges` bound: the geometric middle of its edges (the
+/// first bin's: half its edge; the open last bin's: √2 × its lower edge).
+fn centre_of(edges: &[f64], bin: usize) -> f64 {
     match bin {
-        0 => 0.5 * RANGE_EDGES_M[0],
-        k if k == BINS - 1 => RANGE_EDGES_M[k - 1] * std::f64::consts::SQRT_2,
-        k => (RANGE_EDGES_M[k - 1] * RANGE_EDGES_M[k]).sqrt(),
+        0 => 0.5 * edges[0],
+        k if k == edges.len() => edges[k - 1] * std::f64::consts::SQRT_2,
+        k => (edges[k - 1] * edges[k]).sqrt(),
     }
 }
 
@@ -277,6 +346,7 @@ mod tests {
                 var: sd * sd,
                 grazing,
                 point_sd: [0.0, 0.0, sd],
+                data_m: 0.0,
             };
             scales.factor(Source::Window, rho, &e)
         };

@@ -198,6 +198,7 @@ impl Aggregate for PoseAugmentedGp {
             var,
             grazing: f64::INFINITY,
             point_sd: [0.0, 0.0, var.sqrt()],
+            data_m: 0.0,
         })
     }
 

@@ -1132,6 +1132,7 @@ impl WorldAggregate {
                 var,
                 grazing: f64::INFINITY,
                 point_sd: [0.0, 0.0, var.sqrt()],
+                data_m: 0.0,
             }
         })
     }
