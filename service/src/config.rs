@@ -818,6 +818,7 @@ impl Config {
             target: g.target,
             jitter: JitterPolicy::default(),
             variance_calibration: g.variance_calibration,
+            index_data: g.unseen_relief && g.prequential_calibration,
         }
     }
 }

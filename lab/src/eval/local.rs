@@ -87,6 +87,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
         target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
         variance_calibration: rangegp_service::map::tiles::VarianceCalibration::None,
+        index_data: false,
     }
 }
 

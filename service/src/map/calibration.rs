@@ -146,8 +146,10 @@ impl Calibrator {
         // The relief learnt from this scan applies to every held window residual (the new ones
         // included), and the window's scales are refitted under it.
         let relief = self.scales.relief;
-        for r in self.window.iter_mut().flatten().flatten() {
-            r.relief_var = relief.var_at(r.data_m);
+        if self.learn_relief {
+            for r in self.window.iter_mut().flatten().flatten() {
+                r.relief_var = relief.var_at(r.data_m);
+            }
         }
         if touched[0] || relief != relief_before {
             self.scales.window = table_of(&self.window);
@@ -208,7 +210,7 @@ impl Calibrator {
                 Answerer::Aggregate => Source::Aggregate,
                 Answerer::Window(_) => Source::Window,
             };
-            let var = self.scales.variance(source, a.rho_m, &a.estimate);
+            let var = self.scales.calibrate(source, a.rho_m, &a.estimate).var_m2;
             Some((p.z - a.estimate.z, var.sqrt()))
         };
         query::par_map(sample, rayon::current_num_threads(), |&(p, noise_p, _)| {

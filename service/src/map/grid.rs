@@ -186,9 +186,8 @@ pub fn slopes(snapshot: &MapSnapshot, points: &[[f64; 2]], model: &LayerModel, t
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{family_terrain, layer_model, params, scan_of};
+    use crate::map::test_support::{family_terrain, layer_model, params, scan_at_centre};
     use crate::map::{LocalRangeMap, Window};
-    use nalgebra::Isometry3;
     use rangegp_proto::msg::Provenance;
     use std::sync::Arc;
 
@@ -203,10 +202,7 @@ mod tests {
 
     #[test]
     fn layers_leave_elevation_alone_and_a_point_slope_equals_its_grid_cell() {
-        let terrain = family_terrain("fbm-h05-16deg", 3, 60.0);
-        let ground = terrain.height(0.0, 0.0).expect("the centre lies on the terrain");
-        let pose = Isometry3::translation(0.0, 0.0, ground + 0.75);
-        let scan = scan_of(&terrain, pose);
+        let scan = scan_at_centre(&family_terrain("fbm-h05-16deg", 3, 60.0));
         let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
         let mut window = Window::new(4);
         window.push(Arc::new(map));

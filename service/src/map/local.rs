@@ -105,6 +105,10 @@ pub struct MapParams {
     pub jitter: JitterPolicy,
     /// How each expert's variance is calibrated to its own data.
     pub variance_calibration: crate::map::tiles::VarianceCalibration,
+    /// Keep the training returns and index where they lie ([`LocalRangeMap::data`]), so that
+    /// answers carry their distance from data (what the unseen relief needs; without it every
+    /// answer counts as [`super::data_index::MAX_DATA_DISTANCE_M`] from data, at no cost).
+    pub index_data: bool,
 }
 
 /// Why a scan could not be turned into a map.
@@ -133,7 +137,8 @@ pub struct HeightEstimate {
     /// Table I); a height field's is (0, 0, σ_z).
     pub point_sd: [f64; 3],
     /// Horizontal distance from the answer to the nearest datum of the map that gave it, metres
-    /// (0 for a height field's fused cells): what the GP's angular σ does not see.
+    /// (0 for a height field's fused cells; the search's cap for a map that keeps no index): what
+    /// the GP's angular σ does not see.
     pub data_m: f64,
 }
 
@@ -222,9 +227,13 @@ impl LocalRangeMap {
         )?;
         gp.calibrate(params.variance_calibration);
         let angles: Vec<(f64, f64)> = scan.rays.iter().map(|r| (r.inclination, r.azimuth)).collect();
-        let returns: Vec<[f32; 3]> = training_returns(scan, params.max_training_rays)
-            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
-            .collect();
+        let returns: Vec<[f32; 3]> = if params.index_data {
+            training_returns(scan, params.max_training_rays)
+                .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+                .collect()
+        } else {
+            Vec::new()
+        };
         Ok(Self {
             publisher_id: scan.publisher_id,
             sequence: scan.sequence,

@@ -148,17 +148,13 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         Answerer::Window(_) => Source::Window,
         Answerer::Aggregate => Source::Aggregate,
     };
-    let calibrated = |a: &RawAnswer| {
-        (
-            a.estimate.z,
-            snapshot.scales.variance(source, a.rho_m, &a.estimate),
-        )
-    };
-    let (z1, v1) = calibrated(&first);
+    let calibrated = |a: &RawAnswer| snapshot.scales.calibrate(source, a.rho_m, &a.estimate);
+    let primary = calibrated(&first);
+    let (z1, v1) = (first.estimate.z, primary.var_m2);
     let (z, var) = match second {
         None => (z1, v1),
         Some((other, w)) => {
-            let (z2, v2) = calibrated(&other);
+            let (z2, v2) = (other.estimate.z, calibrated(&other).var_m2);
             let z = (1.0 - w) * z1 + w * z2;
             let second_moment = (1.0 - w) * (v1 + z1 * z1) + w * (v2 + z2 * z2);
             (z, (second_moment - z * z).max(0.0))
@@ -173,7 +169,7 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
         return refused(Refusal::TooUncertain);
     }
     // The primary answer's (weight ≥ ½ in a blend): its sensor's ray and its data.
-    let s = sd_ratio(snapshot, source, &first);
+    let s = primary.sd_factor;
     ElevationItem {
         z_m: Some(z),
         z_var_m2: Some(var),
@@ -295,30 +291,13 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
 }
 
 /// The snapshot's σ calibration for `source` at map point `p`, as a factor on σ: the one the
-/// height answer there gets ([`sd_ratio`]; a ray's range uncertainty is the height's seen along
-/// the ray); 1 where no map answers.
+/// height answer there gets ([`super::scales::Calibrated::sd_factor`]; a ray's range
+/// uncertainty is the height's seen along the ray); 1 where no map answers.
 fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
-    raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| sd_ratio(snapshot, source, &a))
+    raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| {
+        snapshot.scales.calibrate(source, a.rho_m, &a.estimate).sd_factor
+    })
 }
-
-/// The calibrated σ of `answer` (scaled, plus the unseen relief) over the map's own, at least the
-/// scale alone and at most [`MAX_RAY_FACTOR`] (or the scale, if larger): what a point's and a
-/// ray's σ, which the maps give along the sensor's ray, are multiplied by so that they stay
-/// calibrated like the height's.
-fn sd_ratio(snapshot: &MapSnapshot, source: Source, answer: &RawAnswer) -> f64 {
-    let factor = snapshot.scales.factor(source, answer.rho_m, &answer.estimate);
-    let raw = answer.estimate.var;
-    if raw > 0.0 {
-        let calibrated = snapshot.scales.variance(source, answer.rho_m, &answer.estimate);
-        (calibrated / raw).sqrt().min(MAX_RAY_FACTOR).max(factor)
-    } else {
-        factor
-    }
-}
-
-/// Largest factor the unseen relief may put on a ray's σ (a map sure to a micrometre at a point
-/// far from its data would otherwise scale its range variance without bound).
-pub const MAX_RAY_FACTOR: f64 = 100.0;
 
 /// Maps `f` over `items` on up to `threads` scoped threads, keeping order.
 pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {

@@ -135,15 +135,13 @@ fn departure(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{family_terrain, params, scan_of};
+    use crate::map::test_support::{family_terrain, params, scan_at_centre, scan_of};
     use crate::map::LocalRangeMap;
     use nalgebra::Isometry3;
 
     /// The relief learnt from one scan of `terrain` (a family terrain by name).
     fn relief_on(terrain: &str) -> Relief {
-        let terrain = family_terrain(terrain, 3, 60.0);
-        let ground = terrain.height(0.0, 0.0).expect("the centre lies on the terrain");
-        let scan = scan_of(&terrain, Isometry3::translation(0.0, 0.0, ground + 0.75));
+        let scan = scan_at_centre(&family_terrain(terrain, 3, 60.0));
         let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
         let mut learner = ReliefLearner::default();
         learner.observe(&scan, &map);
@@ -179,12 +177,9 @@ mod tests {
 
     #[test]
     fn a_map_moved_by_a_correction_is_measured_where_it_now_lies() {
-        let terrain = family_terrain("fbm-h05-30deg", 3, 60.0);
-        let ground = terrain.height(0.0, 0.0).expect("the centre lies on the terrain");
-        let pose = Isometry3::translation(0.0, 0.0, ground + 0.75);
-        let scan = scan_of(&terrain, pose);
+        let scan = scan_at_centre(&family_terrain("fbm-h05-30deg", 3, 60.0));
         let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
-        let moved = map.reanchored(Isometry3::translation(3.0, -2.0, 0.5) * pose, 1);
+        let moved = map.reanchored(Isometry3::translation(3.0, -2.0, 0.5) * scan.pose, 1);
         let (mut here, mut there) = (ReliefLearner::default(), ReliefLearner::default());
         here.observe(&scan, &map);
         there.observe(&scan, &moved);

@@ -248,17 +248,39 @@ impl SigmaScales {
         table_factor(table, rho_m, estimate.grazing, estimate.var)
     }
 
-    /// The calibrated variance of `estimate` (of `source`, at horizontal distance `rho_m`): its
-    /// own scaled by [`Self::factor`] squared, plus for a window answer the relief unseen at its
-    /// distance from data.
-    pub fn variance(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
-        let f = self.factor(source, rho_m, estimate);
+    /// `estimate` (of `source`, at horizontal distance `rho_m`) calibrated: its variance scaled
+    /// by [`Self::factor`] squared, plus for a window answer the relief unseen at its distance
+    /// from data; and the factor that takes its σ to the calibrated one, at least the scale alone
+    /// and at most [`MAX_SD_FACTOR`] (or the scale, if larger), which a point's and a ray's σ,
+    /// given along the sensor's ray, take so that they stay calibrated like the height's.
+    pub fn calibrate(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> Calibrated {
+        let factor = self.factor(source, rho_m, estimate);
         let relief = match source {
             Source::Aggregate => 0.0,
             _ => self.relief.var_at(estimate.data_m),
         };
-        estimate.var.max(0.0) * f * f + relief
+        let raw = estimate.var.max(0.0);
+        let var_m2 = raw * factor * factor + relief;
+        let sd_factor = if raw > 0.0 {
+            (var_m2 / raw).sqrt().min(MAX_SD_FACTOR).max(factor)
+        } else {
+            factor
+        };
+        Calibrated { var_m2, sd_factor }
     }
+}
+
+/// Largest factor the unseen relief may put on an answer's σ along its ray (a map sure to a
+/// micrometre at a point far from its data would otherwise scale a ray's variance without bound).
+pub const MAX_SD_FACTOR: f64 = 100.0;
+
+/// An answer calibrated ([`SigmaScales::calibrate`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibrated {
+    /// Calibrated height variance, m².
+    pub var_m2: f64,
+    /// Factor from the map's own σ to the calibrated one.
+    pub sd_factor: f64,
 }
 
 /// The factor of `table` for an answer of variance `var` and grazing

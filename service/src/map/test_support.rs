@@ -22,6 +22,7 @@ pub(crate) fn params() -> MapParams {
         target: RangeTarget::Range,
         jitter: JitterPolicy::default(),
         variance_calibration: crate::map::tiles::VarianceCalibration::None,
+        index_data: true,
     }
 }
 
@@ -47,6 +48,12 @@ pub(crate) fn family_terrain(name: &str, seed: u64, size_m: f64) -> Heightmap {
         .find(|t| t.name == name)
         .unwrap_or_else(|| panic!("no terrain {name} in the sim family"))
         .build(seed, size_m)
+}
+
+/// A noisy seed-000 scan of `terrain` from 0.75 m above the ground at its centre.
+pub(crate) fn scan_at_centre(terrain: &Heightmap) -> ScanInput {
+    let ground = terrain.height(0.0, 0.0).expect("the centre lies on the terrain");
+    scan_of(terrain, Isometry3::translation(0.0, 0.0, ground + 0.75))
 }
 
 /// A noisy seed-000 scan of `terrain` from `pose` (returns only).
