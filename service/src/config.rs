@@ -257,8 +257,10 @@ pub struct GpConfig {
     /// (default on; docs/EVALUATION.md "Calibration").
     pub prequential_calibration: bool,
     /// Add to window answers' σ the relief their data cannot see, learnt from each scan's own
-    /// returns by the distance to the nearest datum (needs the prequential calibration). Off by
-    /// default until rays are calibrated with it (docs/EVALUATION.md "Calibration", step 6).
+    /// returns by the distance to the nearest datum (needs the prequential calibration, which
+    /// learns it always: planner layers bound their σ with it). Off by default: it narrows
+    /// window rays' σ on gentle terrain and widens the quick matrix's 68 % coverage
+    /// (docs/EVALUATION.md "Calibration", step 6).
     pub unseen_relief: bool,
 }
 
@@ -818,7 +820,7 @@ impl Config {
             target: g.target,
             jitter: JitterPolicy::default(),
             variance_calibration: g.variance_calibration,
-            index_data: g.unseen_relief && g.prequential_calibration,
+            index_data: g.prequential_calibration,
         }
     }
 }

@@ -10,8 +10,8 @@ use rangegp_proto::msg::{ErrorCode, GridReply, GridRequest, Layer, RobotModel};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_service::map::grid::GridBox;
 use rangegp_service::map::layers::LayerModel;
-use rangegp_service::map::scales::TailShape;
 use rangegp_service::map::scales::DEFAULT_ERROR_LENGTH_M;
+use rangegp_service::map::scales::{Relief, TailShape};
 use rangegp_sim::Heightmap;
 use rangegp_tests::{rms, world, Harness};
 
@@ -24,6 +24,7 @@ fn truth(terrain: &Heightmap, rep: &GridReply) -> Vec<Option<(f64, f64)>> {
         robot: rep.robot,
         error_length_m: DEFAULT_ERROR_LENGTH_M,
         tails: TailShape::default(),
+        relief: Relief::default(),
     };
     let grid_box = GridBox {
         origin_m: rep.origin_m,

@@ -450,6 +450,7 @@ impl TruthLayers {
             rows: outer.rows,
             z: &z,
             sd: &sd,
+            relief_sd: &[],
         };
         let cells = (0..b.rows)
             .flat_map(|r| (0..b.cols).map(move |c| (c, r)))
@@ -483,6 +484,7 @@ fn error_length_sweep(plain: &GridReply, truth: &TruthLayers, model: &LayerModel
         rows: plain.rows as usize,
         z: &z,
         sd: &sd,
+        relief_sd: &[],
     };
     [0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5]
         .into_iter()

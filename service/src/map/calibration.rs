@@ -67,19 +67,17 @@ pub struct Calibrator {
     aggregate: Residuals,
     correlation: CorrelationLearner,
     relief: ReliefLearner,
-    /// Whether the unseen relief is learnt and added (`gp.unseen_relief`).
-    learn_relief: bool,
     scales: SigmaScales,
 }
 
 impl Calibrator {
-    /// A calibrator with nothing learnt; with `learn_relief`, it also learns the relief unseen
-    /// between data ([`super::relief`]) and adds it to window answers' σ.
-    pub fn new(learn_relief: bool) -> Self {
-        Self {
-            learn_relief,
-            ..Self::default()
-        }
+    /// A calibrator with nothing learnt. It learns the relief unseen between data
+    /// ([`super::relief`]) from maps that index their data, for planner layers; with
+    /// `relief_in_heights` it also adds it to window answers' σ (`gp.unseen_relief`).
+    pub fn new(relief_in_heights: bool) -> Self {
+        let mut calibrator = Self::default();
+        calibrator.scales.relief_in_heights = relief_in_heights;
+        calibrator
     }
 
     /// The current scales.
@@ -103,10 +101,9 @@ impl Calibrator {
             return 0;
         };
         let relief_before = self.scales.relief;
-        if self.learn_relief {
-            self.relief.observe(scan, map);
-            self.scales.relief = self.relief.relief();
-        }
+        self.relief.observe(scan, map);
+        self.scales.relief = self.relief.relief();
+        let in_heights = self.scales.relief_in_heights;
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
         let answers = query::par_map(
@@ -146,12 +143,12 @@ impl Calibrator {
         // The relief learnt from this scan applies to every held window residual (the new ones
         // included), and the window's scales are refitted under it.
         let relief = self.scales.relief;
-        if self.learn_relief {
+        if in_heights {
             for r in self.window.iter_mut().flatten().flatten() {
                 r.relief_var = relief.var_at(r.data_m);
             }
         }
-        if touched[0] || relief != relief_before {
+        if touched[0] || (in_heights && relief != relief_before) {
             self.scales.window = table_of(&self.window);
         }
         if touched[1] {
@@ -584,7 +581,11 @@ mod tests {
         let scan = scan_over_flat(0.0, 1);
         let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
         assert_eq!(calibrator.observe(&MapSnapshot::default(), &scan, &map), 0);
-        assert_eq!(calibrator.scales(), SigmaScales::default());
+        let nothing = SigmaScales {
+            relief_in_heights: true,
+            ..SigmaScales::default()
+        };
+        assert_eq!(calibrator.scales(), nothing);
     }
 
     #[test]

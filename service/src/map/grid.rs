@@ -44,7 +44,11 @@ pub fn grid(
     let centres: Vec<[f64; 2]> = (0..rows)
         .flat_map(|r| (0..cols).map(move |c| [o[0] + (c as f64 - m) * res, o[1] + (r as f64 - m) * res]))
         .collect();
-    let items = query::par_map(&centres, threads, |p| query::elevation(snapshot, p[0], p[1]));
+    let (items, relief): (Vec<ElevationItem>, Vec<f64>) = query::par_map(&centres, threads, |p| {
+        query::elevation_with_relief(snapshot, p[0], p[1])
+    })
+    .into_iter()
+    .unzip();
     let inner: Vec<(usize, usize)> = (0..grid_box.rows)
         .flat_map(|r| (0..grid_box.cols).map(move |c| (c + margin, r + margin)))
         .collect();
@@ -71,11 +75,13 @@ pub fn grid(
         return reply;
     };
     let (z, sd) = heights(&items);
+    let relief_sd = relief_sds(&relief);
     let heights = HeightGrid {
         cols,
         rows,
         z: &z,
         sd: &sd,
+        relief_sd: &relief_sd,
     };
     let cells = query::par_map(&inner, threads, |&(c, r)| {
         cell_layers(&heights, &stencil, model, c, r)
@@ -105,6 +111,11 @@ fn heights(items: &[ElevationItem]) -> (Vec<f64>, Vec<f64>) {
             _ => (f64::NAN, f64::NAN),
         })
         .unzip()
+}
+
+/// The σ of the unseen relief's share of each answer's variance.
+fn relief_sds(relief_var: &[f64]) -> Vec<f64> {
+    relief_var.iter().map(|v| v.max(0.0).sqrt()).collect()
 }
 
 /// The value of `layer` (not `cost`, which is the costmap) in `l`.
@@ -140,21 +151,23 @@ pub fn slopes(snapshot: &MapSnapshot, points: &[[f64; 2]], model: &LayerModel, t
     let reach = stencil.reach() as usize;
     let side = 2 * reach + 1;
     let items = query::par_map(points, threads, |p| {
-        let answers: Vec<ElevationItem> = (0..side * side)
+        let (answers, relief): (Vec<ElevationItem>, Vec<f64>) = (0..side * side)
             .map(|k| {
                 let (c, r) = ((k % side) as f64, (k / side) as f64);
                 let x = p[0] + (c - reach as f64) * res;
                 let y = p[1] + (r - reach as f64) * res;
-                query::elevation(snapshot, x, y)
+                query::elevation_with_relief(snapshot, x, y)
             })
-            .collect();
+            .unzip();
         let centre = &answers[reach * side + reach];
         let (z, sd) = heights(&answers);
+        let relief_sd = relief_sds(&relief);
         let grid = HeightGrid {
             cols: side,
             rows: side,
             z: &z,
             sd: &sd,
+            relief_sd: &relief_sd,
         };
         match cell_layers(&grid, &stencil, model, reach, reach) {
             Some(l) => SlopeItem {

@@ -10,8 +10,18 @@
 //! what keeps a smooth map's slope error small. The covariance between cells i and j is taken as
 //! σᵢ σⱼ ρ(dᵢⱼ), with σ the calibrated height σ of each answer and ρ a Matérn-3/2 correlation of
 //! length [`LayerModel::error_length_m`] (see docs/ARCHITECTURE.md "Planner layers").
+//!
+//! The unseen relief's share of an answer's variance ([`super::scales::Relief`], rᵢ² at the
+//! answer's distance from data) is not such a smooth error: it is the terrain itself between
+//! returns, and two points s apart differ by what the terrain differs by over s, whose mean
+//! square is about 2R(s) (twice the departure from a line at distance s, R, for a terrain
+//! whose increments grow like a random walk's). That share is taken apart: σᵢ² above is the rest,
+//! and the relief adds max(0, rᵢrⱼ − R(dᵢⱼ)), which gives two cells deep in a gap the difference
+//! the terrain has, so that a slope over ground no return touched is as uncertain as the relief
+//! there makes it. The same R bounds every slope and step σ: a map knows them no worse than the
+//! terrain's own slopes and steps let one guess them (see [`cell_layers`]).
 
-use super::scales::{ErrorCorrelation, TailShape};
+use super::scales::{ErrorCorrelation, Relief, TailShape};
 use super::window::MapSnapshot;
 use nalgebra::{Matrix3, Vector3};
 use rangegp_proto::msg::RobotModel;
@@ -39,6 +49,8 @@ pub struct LayerModel {
     pub error_length_m: f64,
     /// Shape of the calibrated errors (the snapshot's, learnt with its σ scales).
     pub tails: TailShape,
+    /// The unseen relief by distance from data (the snapshot's; zero when not learnt).
+    pub relief: Relief,
 }
 
 impl LayerModel {
@@ -49,6 +61,7 @@ impl LayerModel {
             robot,
             error_length_m: snapshot.scales.correlation.length_m,
             tails: snapshot.scales.tails,
+            relief: snapshot.scales.relief,
         }
     }
 }
@@ -62,6 +75,12 @@ pub struct Stencil {
     uv: Vec<(f64, f64)>,
     /// Error correlation between offsets a and b at `a * n + b`.
     corr: Vec<f64>,
+    /// The unseen relief's variance R at the distance between offsets a and b, at `a * n + b`.
+    relief: Vec<f64>,
+    /// The terrain's own gradient covariance (xx, xy, yy) over the whole footprint, from R
+    /// (see [`cell_layers`]; zero where no relief is learnt): most cells have every footprint
+    /// cell answered, and their plane's weights are these.
+    terrain_gradient: [f64; 3],
     /// Largest |offset| along either axis, cells.
     reach: i32,
 }
@@ -94,16 +113,27 @@ impl Stencil {
             length_m: model.error_length_m,
         };
         let mut corr = vec![0.0; n * n];
+        let mut relief = vec![0.0; n * n];
         for a in 0..n {
             for b in 0..n {
                 let d = (uv[a].0 - uv[b].0).hypot(uv[a].1 - uv[b].1);
                 corr[a * n + b] = correlation.at(d);
+                relief[a * n + b] = model.relief.var_at(d);
             }
         }
+        let all: Vec<usize> = (0..n).collect();
+        let mut w = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
+        let [w0, wx, wy] = &mut w;
+        let terrain_gradient = match plane_weights(&uv, &all, [&mut w0[..], &mut wx[..], &mut wy[..]]) {
+            Some(()) => terrain_gradient(&[&w[1], &w[2]], &all, &relief, n),
+            None => [0.0; 3],
+        };
         Self {
             offsets,
             uv,
             corr,
+            relief,
+            terrain_gradient,
             reach,
         }
     }
@@ -136,6 +166,9 @@ pub struct HeightGrid<'a> {
     pub z: &'a [f64],
     /// σ of the height per cell, metres.
     pub sd: &'a [f64],
+    /// σ of the unseen relief's share of it per cell, metres (at most `sd`; see the module doc),
+    /// or empty where the maps learn no relief.
+    pub relief_sd: &'a [f64],
 }
 
 /// The layers at one cell.
@@ -200,13 +233,19 @@ pub fn cell_layers(
     }
     let m = stencil.len();
     let mut known: Vec<usize> = Vec::with_capacity(m);
-    // Per footprint cell: height, σ, and the weights on σ-scaled heights of the gradient's two
-    // components and of the roughness (zero where the cell is unknown).
-    let mut buf = vec![0.0; 5 * m];
+    // Per footprint cell: height, σ without the relief, the relief's σ, and the weights on
+    // σ-scaled heights of the gradient's two components and of the roughness, and the same on
+    // the heights themselves for the relief's share (zero where the cell is unknown).
+    let mut buf = vec![0.0; 10 * m];
     let (z, rest) = buf.split_at_mut(m);
     let (sd, rest) = rest.split_at_mut(m);
+    let (rd, rest) = rest.split_at_mut(m);
     let (px, rest) = rest.split_at_mut(m);
-    let (py, pr) = rest.split_at_mut(m);
+    let (py, rest) = rest.split_at_mut(m);
+    let (pr, rest) = rest.split_at_mut(m);
+    let (w0, rest) = rest.split_at_mut(m);
+    let (wx, rest) = rest.split_at_mut(m);
+    let (wy, wr) = rest.split_at_mut(m);
     for (k, &(di, dj)) in stencil.offsets.iter().enumerate() {
         let Some(c) = at(col as i64 + i64::from(di), row as i64 + i64::from(dj)) else {
             continue;
@@ -214,7 +253,15 @@ pub fn cell_layers(
         if grid.z[c].is_finite() && grid.sd[c].is_finite() {
             known.push(k);
             z[k] = grid.z[c];
-            sd[k] = grid.sd[c].max(0.0);
+            let total = grid.sd[c].max(0.0);
+            let relief = grid.relief_sd.get(c).copied().unwrap_or(0.0);
+            if relief > 0.0 {
+                let relief = relief.min(total);
+                rd[k] = relief;
+                sd[k] = (total * total - relief * relief).max(0.0).sqrt();
+            } else {
+                sd[k] = total;
+            }
         }
     }
     let n = known.len();
@@ -222,19 +269,12 @@ pub fn cell_layers(
     if n < 3 || (n as f64) < MIN_KNOWN_SHARE * m as f64 {
         return None;
     }
-    // Least-squares plane z = a + gx u + gy v; rows of (XᵀX)⁻¹Xᵀ give gx and gy as weights on z.
-    let mut xtx = Matrix3::zeros();
-    for &k in &known {
-        let x = Vector3::new(1.0, stencil.uv[k].0, stencil.uv[k].1);
-        xtx += x * x.transpose();
-    }
-    let inv = xtx.try_inverse()?;
+    plane_weights(&stencil.uv, &known, [&mut *w0, &mut *wx, &mut *wy])?;
     let mut coef = Vector3::zeros();
     for &k in &known {
-        let w = inv * Vector3::new(1.0, stencil.uv[k].0, stencil.uv[k].1);
-        coef += w * z[k];
-        px[k] = w.y * sd[k];
-        py[k] = w.z * sd[k];
+        coef += Vector3::new(w0[k], wx[k], wy[k]) * z[k];
+        px[k] = wx[k] * sd[k];
+        py[k] = wy[k] * sd[k];
     }
     let (gx, gy) = (coef.y, coef.z);
     let mut sum_r2 = 0.0;
@@ -251,6 +291,7 @@ pub fn cell_layers(
         0.0
     };
     for &k in &known {
+        wr[k] = pr[k] * scale;
         pr[k] *= scale * sd[k];
     }
     // The covariances of the gradient's two components and of the roughness, Σ pₐ Cₐᵦ pᵦ with
@@ -267,12 +308,49 @@ pub fn cell_layers(
         vxy += caa * px[a] * py[a] + px[a] * cy + py[a] * cx;
         vrr += pr[a] * (caa * pr[a] + 2.0 * cr);
     }
-    let g = gx.hypot(gy);
-    let g_var = if g > 1e-12 {
-        let (ux, uy) = (gx / g, gy / g);
-        ux * ux * vxx + 2.0 * ux * uy * vxy + uy * uy * vyy
+    // The terrain's own gradient covariance over the footprint, where the relief is learnt:
+    // the gradient's weights sum to zero, so only the terrain's increments enter, and
+    // Var Σ wz = −½ Σ wₐ wᵦ D(dₐᵦ) with D ≈ 2R (module doc).
+    let learnt = model.relief.is_learnt();
+    let share = learnt && known.iter().any(|&k| rd[k] > 0.0);
+    if share {
+        // The relief's share, Σ wₐ wᵦ max(0, rₐrᵦ − R(dₐᵦ)).
+        for &a in &known {
+            let row = &stencil.relief[a * m..a * m + m];
+            for &b in &known {
+                let q = (rd[a] * rd[b] - row[b]).max(0.0);
+                if q > 0.0 {
+                    vxx += wx[a] * wx[b] * q;
+                    vyy += wy[a] * wy[b] * q;
+                    vxy += wx[a] * wy[b] * q;
+                    vrr += wr[a] * wr[b] * q;
+                }
+            }
+        }
+    }
+    let [qxx, qxy, qyy] = if !learnt {
+        [0.0; 3]
+    } else if n == m {
+        stencil.terrain_gradient
     } else {
-        0.5 * (vxx + vyy)
+        terrain_gradient(&[&*wx, &*wy], &known, &stencil.relief, m)
+    };
+    let g = gx.hypot(gy);
+    let (ux, uy) = if g > 1e-12 { (gx / g, gy / g) } else { (1.0, 0.0) };
+    let along_dir = |xx: f64, xy: f64, yy: f64| ux * ux * xx + 2.0 * ux * uy * xy + uy * uy * yy;
+    let across_dir = |xx: f64, xy: f64, yy: f64| uy * uy * xx - 2.0 * ux * uy * xy + ux * ux * yy;
+    // A map can know a slope no worse than the terrain's own slopes let one guess it: far from
+    // data its heights' σ is wide and smooth, and the delta method over it (with the short error
+    // length learnt near data) would claim slopes of any angle.
+    let (mut var_along, mut var_across) = (along_dir(vxx, vxy, vyy), across_dir(vxx, vxy, vyy));
+    if learnt {
+        var_along = var_along.min(along_dir(qxx, qxy, qyy));
+        var_across = var_across.min(across_dir(qxx, qxy, qyy));
+    }
+    let g_var = if g > 1e-12 {
+        var_along
+    } else {
+        0.5 * (var_along + var_across)
     };
     let g_sd = g_var.max(0.0).sqrt();
     let slope = g.atan();
@@ -293,15 +371,31 @@ pub fn cell_layers(
     }
     let step = z[hi] - z[lo];
     let rho = stencil.corr[hi * m + lo];
-    let step_sd = (sd[hi] * sd[hi] + sd[lo] * sd[lo] - 2.0 * rho * sd[hi] * sd[lo])
-        .max(0.0)
-        .sqrt();
+    let relief_hl = stencil.relief[hi * m + lo];
+    let relief_cov = (rd[hi] * rd[lo] - relief_hl).max(0.0);
+    let mut step_var =
+        sd[hi] * sd[hi] + sd[lo] * sd[lo] - 2.0 * rho * sd[hi] * sd[lo] + rd[hi] * rd[hi] + rd[lo] * rd[lo]
+            - 2.0 * relief_cov;
+    if learnt {
+        // No worse known than the terrain's own difference over that distance, D ≈ 2R.
+        step_var = step_var.min(2.0 * relief_hl);
+    }
+    let step_sd = step_var.max(0.0).sqrt();
 
+    // The true gradient lies outside the disc of the limit's gradient whenever either of its
+    // components (along the mapped gradient and across it) lies outside [−limit, limit]: the
+    // probability of that (the two taken as independent) is the slope risk. It is the one-sided
+    // exceedance along the gradient where σ is small, and tends to 1 as σ grows, where a
+    // one-sided exceedance would stop at ½ on ground mapped flat.
     let robot = &model.robot;
-    let slope_risk = model
-        .tails
-        .exceedance(g, g_sd, robot.max_slope_deg.to_radians().tan());
-    let step_risk = model.tails.exceedance(step, step_sd, robot.max_step_m);
+    let (sd_along, sd_across) = (var_along.max(0.0).sqrt(), var_across.max(0.0).sqrt());
+    let limit = robot.max_slope_deg.to_radians().tan();
+    let along = model.tails.outside(g, sd_along, limit);
+    let across = model.tails.outside(0.0, sd_across, limit);
+    let slope_risk = 1.0 - (1.0 - along) * (1.0 - across);
+    // The true step is at least the true difference of the two cells the mapped step spans, of
+    // either sign.
+    let step_risk = model.tails.outside(step, step_sd, robot.max_step_m);
     let risk = slope_risk.max(step_risk);
     let traversal_cost = 1.0 - (1.0 - risk) * (1.0 - unknown_risk);
     Some(CellLayers {
@@ -319,6 +413,40 @@ pub fn cell_layers(
         risk,
         traversal_cost,
     })
+}
+
+/// The least-squares plane z = a + gₓu + g_yv over the cells `known` of offsets `uv`: the rows
+/// of (XᵀX)⁻¹Xᵀ, the weights on the heights that give a, gₓ and g_y, written at the known cells
+/// of `w`; `None` when the cells lie on a line.
+fn plane_weights(uv: &[(f64, f64)], known: &[usize], w: [&mut [f64]; 3]) -> Option<()> {
+    let mut xtx = Matrix3::zeros();
+    for &k in known {
+        let x = Vector3::new(1.0, uv[k].0, uv[k].1);
+        xtx += x * x.transpose();
+    }
+    let inv = xtx.try_inverse()?;
+    let [w0, wx, wy] = w;
+    for &k in known {
+        let c = inv * Vector3::new(1.0, uv[k].0, uv[k].1);
+        (w0[k], wx[k], wy[k]) = (c.x, c.y, c.z);
+    }
+    Some(())
+}
+
+/// The terrain's own covariance (xx, xy, yy) of the gradient with weights `w` (x, y) over the
+/// cells `known`: −Σ wₐ wᵦ R(dₐᵦ), R at `a * m + b` of `relief` (see the module doc).
+fn terrain_gradient(w: &[&[f64]; 2], known: &[usize], relief: &[f64], m: usize) -> [f64; 3] {
+    let [wx, wy] = *w;
+    let mut q = [0.0; 3];
+    for &a in known {
+        let row = &relief[a * m..a * m + m];
+        for &b in known {
+            q[0] -= wx[a] * wx[b] * row[b];
+            q[1] -= wx[a] * wy[b] * row[b];
+            q[2] -= wy[a] * wy[b] * row[b];
+        }
+    }
+    q
 }
 
 /// The dot products of `row` with `a`, `b` and `c` (equal lengths), four lanes at a time.
@@ -354,17 +482,23 @@ mod tests {
             .collect()
     }
 
+    /// An 11 × 11 grid of heights `z` with σ `sd` and no relief share.
+    fn grid11<'a>(z: &'a [f64], sd: &'a [f64]) -> HeightGrid<'a> {
+        HeightGrid {
+            cols: 11,
+            rows: 11,
+            z,
+            sd,
+            relief_sd: &[],
+        }
+    }
+
     #[test]
     fn a_plane_gives_its_slope_aspect_and_normal_with_no_roughness() {
         let (res, gx, gy) = (0.1, 0.2, -0.1);
         let z = plane(11, 11, res, gx, gy);
         let sd = vec![0.0; z.len()];
-        let grid = HeightGrid {
-            cols: 11,
-            rows: 11,
-            z: &z,
-            sd: &sd,
-        };
+        let grid = grid11(&z, &sd);
         let m = layer_model();
         let s = Stencil::new(&m, res);
         assert_eq!(s.reach(), 3);
@@ -424,6 +558,7 @@ mod tests {
                 rows: n,
                 z: &z,
                 sd: &sd,
+                relief_sd: &[],
             };
             let c = cell_layers(&grid, &s, &m, 4, 4).expect("inside the grid");
             gx.push(c.slope.tan() * (-c.aspect.cos()));
@@ -451,12 +586,7 @@ mod tests {
                 z[j * 11 + i] = f64::NAN;
             }
         }
-        let grid = HeightGrid {
-            cols: 11,
-            rows: 11,
-            z: &z,
-            sd: &sd,
-        };
+        let grid = grid11(&z, &sd);
         let edge = cell_layers(&grid, &s, &m, 6, 5).expect("most of the footprint answered");
         assert!(edge.unknown_risk > 0.0 && edge.traversal_cost >= edge.unknown_risk);
         assert_eq!(cell_layers(&grid, &s, &m, 4, 5), None, "unanswered centre");
@@ -464,13 +594,40 @@ mod tests {
         let column: Vec<f64> = (0..flat.len())
             .map(|k| if k % 11 == 5 { flat[k] } else { f64::NAN })
             .collect();
-        let sparse = HeightGrid {
-            cols: 11,
-            rows: 11,
-            z: &column,
-            sd: &sd,
-        };
+        let sparse = grid11(&column, &sd);
         assert_eq!(cell_layers(&sparse, &s, &m, 5, 5), None, "a line of cells");
+    }
+
+    #[test]
+    fn ground_mapped_flat_with_wide_sigma_is_risky_and_no_less_known_than_the_terrain() {
+        let res = 0.1;
+        let z = plane(11, 11, res, 0.001, 0.0);
+        let sd = vec![1.0; z.len()];
+        let grid = grid11(&z, &sd);
+        let unbounded = layer_model();
+        let s = Stencil::new(&unbounded, res);
+        let wide = cell_layers(&grid, &s, &unbounded, 5, 5).expect("answered");
+        // A one-sided exceedance along the mapped gradient stopped at ½ here; the true gradient
+        // lies outside the limit's disc almost surely.
+        assert!(wide.slope_risk > 0.9 && wide.step_risk > 0.8, "{wide:?}");
+        // A terrain learnt as a random walk of 1 cm over a metre: its slopes over the footprint
+        // are of a degree or so, whatever σ the heights claim.
+        let bounded = LayerModel {
+            relief: Relief {
+                var_m2: std::array::from_fn(|b| 1e-4 * crate::map::scales::data_centre_m(b)),
+            },
+            ..unbounded
+        };
+        let s = Stencil::new(&bounded, res);
+        let known = cell_layers(&grid, &s, &bounded, 5, 5).expect("answered");
+        assert!(
+            known.slope_sd < 2f64.to_radians() && known.slope_sd < 0.05 * wide.slope_sd,
+            "slope σ {} against {} unbounded",
+            known.slope_sd.to_degrees(),
+            wide.slope_sd.to_degrees()
+        );
+        let widest = (2.0 * bounded.relief.var_at(0.6)).sqrt();
+        assert!(known.step_sd <= widest + 1e-12 && known.slope_risk < 0.01 && known.step_risk < 0.01);
     }
 
     #[test]
@@ -480,25 +637,14 @@ mod tests {
         let sd = vec![0.01; z.len()];
         let m = layer_model();
         let s = Stencil::new(&m, res);
-        let flat = HeightGrid {
-            cols: 11,
-            rows: 11,
-            z: &z.clone(),
-            sd: &sd,
-        };
-        let free = cell_layers(&flat, &s, &m, 5, 5).expect("answered");
+        let free = cell_layers(&grid11(&z, &sd), &s, &m, 5, 5).expect("answered");
         assert_eq!(free.cost(0.5), 0);
         for j in 0..11 {
             for i in 6..11 {
                 z[j * 11 + i] += 0.35;
             }
         }
-        let stepped = HeightGrid {
-            cols: 11,
-            rows: 11,
-            z: &z,
-            sd: &sd,
-        };
+        let stepped = grid11(&z, &sd);
         let wall = cell_layers(&stepped, &s, &m, 5, 5).expect("answered");
         assert!((wall.step - 0.35).abs() < 1e-9 && wall.step_risk > 0.99);
         assert_eq!(wall.cost(0.5), 100);

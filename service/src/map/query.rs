@@ -133,13 +133,22 @@ fn search(
 /// `max_sigma_m` is refused `too_uncertain`: a number that wide would claim knowledge the maps do
 /// not have.
 pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
-    let refused = |refusal: Refusal| ElevationItem {
-        z_m: None,
-        z_var_m2: None,
-        point_sigma_m: None,
-        source: Source::None,
-        provenance: Provenance::None,
-        refusal: Some(refusal),
+    elevation_with_relief(snapshot, x, y).0
+}
+
+/// [`elevation`] with the unseen relief's share of its variance, m² (0 where refused): what
+/// planner layers need to correlate that share over its own distances ([`super::layers`]).
+pub fn elevation_with_relief(snapshot: &MapSnapshot, x: f64, y: f64) -> (ElevationItem, f64) {
+    let refused = |refusal: Refusal| {
+        let item = ElevationItem {
+            z_m: None,
+            z_var_m2: None,
+            point_sigma_m: None,
+            source: Source::None,
+            provenance: Provenance::None,
+            refusal: Some(refusal),
+        };
+        (item, 0.0)
     };
     let Some((first, second)) = blended_elevation(snapshot, x, y) else {
         return refused(Refusal::Unobserved);
@@ -151,13 +160,15 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
     let calibrated = |a: &RawAnswer| snapshot.scales.calibrate(source, a.rho_m, &a.estimate);
     let primary = calibrated(&first);
     let (z1, v1) = (first.estimate.z, primary.var_m2);
-    let (z, var) = match second {
-        None => (z1, v1),
+    let (z, var, relief) = match second {
+        None => (z1, v1, primary.relief_m2),
         Some((other, w)) => {
-            let (z2, v2) = (other.estimate.z, calibrated(&other).var_m2);
+            let other_cal = calibrated(&other);
+            let (z2, v2) = (other.estimate.z, other_cal.var_m2);
             let z = (1.0 - w) * z1 + w * z2;
             let second_moment = (1.0 - w) * (v1 + z1 * z1) + w * (v2 + z2 * z2);
-            (z, (second_moment - z * z).max(0.0))
+            let relief = (1.0 - w) * primary.relief_m2 + w * other_cal.relief_m2;
+            (z, (second_moment - z * z).max(0.0), relief)
         }
     };
     // A NaN variance is refused too: `is_some_and` is false for it.
@@ -170,14 +181,15 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
     }
     // The primary answer's (weight ≥ ½ in a blend): its sensor's ray and its data.
     let s = primary.sd_factor;
-    ElevationItem {
+    let item = ElevationItem {
         z_m: Some(z),
         z_var_m2: Some(var),
         point_sigma_m: Some(first.estimate.point_sd.map(|v| v * s)),
         source,
         provenance: provenance(snapshot, &first, x, y),
         refusal: None,
-    }
+    };
+    (item, relief.min(var))
 }
 
 /// How much data stands behind `answer` at (x, y), graded by the map that gave it, for the
@@ -223,13 +235,15 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
         .filter(|(d, m)| *d < m.max_range() + ray.max_range_m)
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
-    // Each map casts with its calibrated σ, so that a grazing ray's band, its range variance and
-    // its hit probability all see the σ a planner is given.
-    let window_factor = |p: &Vector3<f64>| sd_factor(snapshot, Source::Window, p);
+    // Each map casts with its own calibrated σ, so that a grazing ray's band, its range variance
+    // and its hit probability all see the σ a planner is given.
     let answers: Vec<_> = near
         .into_iter()
         .take(CANDIDATES)
-        .filter_map(|(_, m)| m.cast(origin, dir, ray.max_range_m, &window_factor))
+        .filter_map(|(_, m)| {
+            let factor = |p: &Vector3<f64>| map_sd_factor(snapshot, m, p);
+            m.cast(origin, dir, ray.max_range_m, &factor)
+        })
         .collect();
     let window_hit = answers.iter().filter(|a| a.range.is_some()).min_by(|a, b| {
         a.range_var
@@ -297,6 +311,20 @@ fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
     raw_elevation(snapshot, p.x, p.y).map_or(1.0, |a| {
         snapshot.scales.calibrate(source, a.rho_m, &a.estimate).sd_factor
     })
+}
+
+/// The σ factor window map `map`'s own height answer at map point `p` gets (its range σ there
+/// is what a ray it casts scales: its distance from its own data, not from the nearest map's);
+/// [`sd_factor`] where it gives none.
+fn map_sd_factor(snapshot: &MapSnapshot, map: &LocalRangeMap, p: &Vector3<f64>) -> f64 {
+    match map.elevation(p.x, p.y) {
+        Some(e) => {
+            let s = map.sensor_position();
+            let rho = (p.x - s.x).hypot(p.y - s.y);
+            snapshot.scales.calibrate(Source::Window, rho, &e).sd_factor
+        }
+        None => sd_factor(snapshot, Source::Window, p),
+    }
 }
 
 /// Maps `f` over `items` on up to `threads` scoped threads, keeping order.

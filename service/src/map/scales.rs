@@ -94,6 +94,11 @@ pub struct Relief {
 }
 
 impl Relief {
+    /// Whether any relief was learnt (all zero until the calibrator learns one, or when off).
+    pub fn is_learnt(&self) -> bool {
+        self.var_m2.iter().any(|&v| v > 0.0)
+    }
+
     /// The relief variance at distance `data_m` from the nearest datum, m².
     pub fn var_at(&self, data_m: f64) -> f64 {
         let first = data_centre_m(0);
@@ -125,8 +130,11 @@ pub fn data_bin_of(data_m: f64) -> usize {
 pub struct SigmaScales {
     /// Window answers.
     pub window: ScaleTable,
-    /// Window answers' unseen relief, by distance to the nearest datum.
+    /// The unseen relief, by distance to the nearest datum: the terrain's own roughness, which
+    /// bounds planner layers' σ ([`super::layers`]).
     pub relief: Relief,
+    /// Whether window answers' variance includes the relief (`gp.unseen_relief`).
+    pub relief_in_heights: bool,
     /// Aggregate answers (range from the newest sensor position; all in the last class).
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
@@ -234,6 +242,11 @@ impl TailShape {
         };
         (1.0 - below).clamp(0.0, 1.0)
     }
+
+    /// P(|X| > limit) for X as in [`Self::exceedance`] (`limit` ≥ 0): both tails.
+    pub fn outside(&self, mean: f64, sd: f64, limit: f64) -> f64 {
+        (self.exceedance(mean, sd, limit) + self.exceedance(-mean, sd, limit)).min(1.0)
+    }
 }
 
 impl SigmaScales {
@@ -256,8 +269,8 @@ impl SigmaScales {
     pub fn calibrate(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> Calibrated {
         let factor = self.factor(source, rho_m, estimate);
         let relief = match source {
-            Source::Aggregate => 0.0,
-            _ => self.relief.var_at(estimate.data_m),
+            Source::Window if self.relief_in_heights => self.relief.var_at(estimate.data_m),
+            _ => 0.0,
         };
         let raw = estimate.var.max(0.0);
         let var_m2 = raw * factor * factor + relief;
@@ -266,7 +279,11 @@ impl SigmaScales {
         } else {
             factor
         };
-        Calibrated { var_m2, sd_factor }
+        Calibrated {
+            var_m2,
+            relief_m2: relief,
+            sd_factor,
+        }
     }
 }
 
@@ -279,6 +296,9 @@ pub const MAX_SD_FACTOR: f64 = 100.0;
 pub struct Calibrated {
     /// Calibrated height variance, m².
     pub var_m2: f64,
+    /// The unseen relief's share of `var_m2`, m² (its errors correlate differently: planner
+    /// layers take it apart, [`super::layers`]).
+    pub relief_m2: f64,
     /// Factor from the map's own σ to the calibrated one.
     pub sd_factor: f64,
 }

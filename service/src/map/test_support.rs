@@ -38,6 +38,7 @@ pub(crate) fn layer_model() -> super::layers::LayerModel {
         },
         error_length_m: super::scales::DEFAULT_ERROR_LENGTH_M,
         tails: super::scales::TailShape::default(),
+        relief: super::scales::Relief::default(),
     }
 }
 
