@@ -24,7 +24,7 @@ pub(super) struct FitOutputs {
     pub aggregate: Option<Arc<AggregateFeed>>,
     /// Learn σ scales from each next scan (`gp.prequential_calibration`).
     pub calibrate: bool,
-    /// Learn the unseen relief with them (`gp.unseen_relief`).
+    /// Add the unseen relief (always learnt with them) to window answers' σ (`gp.unseen_relief`).
     pub relief: bool,
     /// Where a [`MapUpdate`] goes when a scan's map is published.
     pub updates: zenoh::pubsub::Publisher<'static>,

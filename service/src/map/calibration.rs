@@ -52,8 +52,8 @@ struct Residual {
     weight: f64,
     /// The answer's distance to its map's nearest datum, metres.
     data_m: f64,
-    /// The relief variance unseen at that distance (window answers; 0 for the aggregate's), m²:
-    /// added to the scaled variance, as the snapshot adds it.
+    /// The relief variance unseen at that distance (window answers with the relief in heights;
+    /// else 0), m²: added to the scaled variance, as the snapshot adds it.
     relief_var: f64,
 }
 

@@ -11,15 +11,14 @@
 //! σᵢ σⱼ ρ(dᵢⱼ), with σ the calibrated height σ of each answer and ρ a Matérn-3/2 correlation of
 //! length [`LayerModel::error_length_m`] (see docs/ARCHITECTURE.md "Planner layers").
 //!
-//! The unseen relief's share of an answer's variance ([`super::scales::Relief`], rᵢ² at the
-//! answer's distance from data) is not such a smooth error: it is the terrain itself between
-//! returns, and two points s apart differ by what the terrain differs by over s, whose mean
-//! square is about 2R(s) (twice the departure from a line at distance s, R, for a terrain
-//! whose increments grow like a random walk's). That share is taken apart: σᵢ² above is the rest,
-//! and the relief adds max(0, rᵢrⱼ − R(dᵢⱼ)), which gives two cells deep in a gap the difference
-//! the terrain has, so that a slope over ground no return touched is as uncertain as the relief
-//! there makes it. The same R bounds every slope and step σ: a map knows them no worse than the
-//! terrain's own slopes and steps let one guess them (see [`cell_layers`]).
+//! The terrain's own increments bound what a map can fail to know: two points s apart differ by
+//! 2γ(s) in mean square, γ the semivariogram the calibrator's relief gives
+//! ([`super::scales::Semivariogram`]). A map knows a slope or a step no worse than the terrain's
+//! own slopes and steps let one guess them, so their variances are bounded by what γ gives
+//! (see [`cell_layers`]). With `gp.unseen_relief` an answer's variance carries the relief unseen
+//! at its distance from data, rᵢ²: that share is the terrain itself between returns, so it is
+//! taken apart (σᵢ² above is the rest) and correlated as the terrain is, max(0, rᵢrⱼ − γ(dᵢⱼ)):
+//! two cells deep in a gap differ by what the terrain differs by over their distance.
 
 use super::scales::{ErrorCorrelation, Relief, TailShape};
 use super::window::MapSnapshot;
@@ -75,12 +74,16 @@ pub struct Stencil {
     uv: Vec<(f64, f64)>,
     /// Error correlation between offsets a and b at `a * n + b`.
     corr: Vec<f64>,
-    /// The unseen relief's variance R at the distance between offsets a and b, at `a * n + b`.
-    relief: Vec<f64>,
-    /// The terrain's own gradient covariance (xx, xy, yy) over the whole footprint, from R
-    /// (see [`cell_layers`]; zero where no relief is learnt): most cells have every footprint
-    /// cell answered, and their plane's weights are these.
+    /// The terrain's semivariogram γ at the distance between offsets a and b, at `a * n + b`
+    /// (zero where it is not learnt).
+    gamma: Vec<f64>,
+    /// Whether γ is learnt at every distance of the footprint (the bounds apply).
+    bounded: bool,
+    /// The terrain's own gradient covariance (xx, xy, yy) with every footprint cell answered
+    /// (most cells' case; see [`cell_layers`]).
     terrain_gradient: [f64; 3],
+    /// The terrain's mean square difference across the footprint's diameter, 2γ(2r), m².
+    step_bound: f64,
     /// Largest |offset| along either axis, cells.
     reach: i32,
 }
@@ -113,27 +116,31 @@ impl Stencil {
             length_m: model.error_length_m,
         };
         let mut corr = vec![0.0; n * n];
-        let mut relief = vec![0.0; n * n];
+        let variogram = model.relief.semivariogram(2.0 * r);
+        let gamma_at = |d: f64| variogram.map_or(0.0, |v| v.at(d));
+        let mut gamma = vec![0.0; n * n];
         for a in 0..n {
             for b in 0..n {
                 let d = (uv[a].0 - uv[b].0).hypot(uv[a].1 - uv[b].1);
                 corr[a * n + b] = correlation.at(d);
-                relief[a * n + b] = model.relief.var_at(d);
+                gamma[a * n + b] = gamma_at(d);
             }
         }
         let all: Vec<usize> = (0..n).collect();
         let mut w = [vec![0.0; n], vec![0.0; n], vec![0.0; n]];
         let [w0, wx, wy] = &mut w;
-        let terrain_gradient = match plane_weights(&uv, &all, [&mut w0[..], &mut wx[..], &mut wy[..]]) {
-            Some(()) => terrain_gradient(&[&w[1], &w[2]], &all, &relief, n),
+        let full_gradient = match plane_weights(&uv, &all, [&mut w0[..], &mut wx[..], &mut wy[..]]) {
+            Some(()) => terrain_gradient(wx, wy, &all, &gamma, n),
             None => [0.0; 3],
         };
         Self {
             offsets,
             uv,
             corr,
-            relief,
-            terrain_gradient,
+            gamma,
+            bounded: variogram.is_some(),
+            terrain_gradient: full_gradient,
+            step_bound: 2.0 * gamma_at(2.0 * r),
             reach,
         }
     }
@@ -166,8 +173,7 @@ pub struct HeightGrid<'a> {
     pub z: &'a [f64],
     /// σ of the height per cell, metres.
     pub sd: &'a [f64],
-    /// σ of the unseen relief's share of it per cell, metres (at most `sd`; see the module doc),
-    /// or empty where the maps learn no relief.
+    /// σ of the unseen relief's share of it per cell (`gp.unseen_relief`), metres, or empty.
     pub relief_sd: &'a [f64],
 }
 
@@ -308,15 +314,11 @@ pub fn cell_layers(
         vxy += caa * px[a] * py[a] + px[a] * cy + py[a] * cx;
         vrr += pr[a] * (caa * pr[a] + 2.0 * cr);
     }
-    // The terrain's own gradient covariance over the footprint, where the relief is learnt:
-    // the gradient's weights sum to zero, so only the terrain's increments enter, and
-    // Var Σ wz = −½ Σ wₐ wᵦ D(dₐᵦ) with D ≈ 2R (module doc).
-    let learnt = model.relief.is_learnt();
-    let share = learnt && known.iter().any(|&k| rd[k] > 0.0);
-    if share {
-        // The relief's share, Σ wₐ wᵦ max(0, rₐrᵦ − R(dₐᵦ)).
+    if known.iter().any(|&k| rd[k] > 0.0) {
+        // The relief's share, Σ wₐ wᵦ max(0, rₐrᵦ − γ(dₐᵦ)) (fully correlated where γ is not
+        // learnt).
         for &a in &known {
-            let row = &stencil.relief[a * m..a * m + m];
+            let row = &stencil.gamma[a * m..a * m + m];
             for &b in &known {
                 let q = (rd[a] * rd[b] - row[b]).max(0.0);
                 if q > 0.0 {
@@ -328,12 +330,15 @@ pub fn cell_layers(
             }
         }
     }
+    // The terrain's own gradient covariance over the footprint: the gradient's weights sum to
+    // zero, so only the terrain's increments enter, Var Σ wz = −Σ wₐ wᵦ γ(dₐᵦ).
+    let learnt = stencil.bounded;
     let [qxx, qxy, qyy] = if !learnt {
         [0.0; 3]
     } else if n == m {
         stencil.terrain_gradient
     } else {
-        terrain_gradient(&[&*wx, &*wy], &known, &stencil.relief, m)
+        terrain_gradient(wx, wy, &known, &stencil.gamma, m)
     };
     let g = gx.hypot(gy);
     let (ux, uy) = if g > 1e-12 { (gx / g, gy / g) } else { (1.0, 0.0) };
@@ -371,14 +376,14 @@ pub fn cell_layers(
     }
     let step = z[hi] - z[lo];
     let rho = stencil.corr[hi * m + lo];
-    let relief_hl = stencil.relief[hi * m + lo];
-    let relief_cov = (rd[hi] * rd[lo] - relief_hl).max(0.0);
+    let relief_cov = (rd[hi] * rd[lo] - stencil.gamma[hi * m + lo]).max(0.0);
     let mut step_var =
         sd[hi] * sd[hi] + sd[lo] * sd[lo] - 2.0 * rho * sd[hi] * sd[lo] + rd[hi] * rd[hi] + rd[lo] * rd[lo]
             - 2.0 * relief_cov;
     if learnt {
-        // No worse known than the terrain's own difference over that distance, D ≈ 2R.
-        step_var = step_var.min(2.0 * relief_hl);
+        // No worse known than the terrain's own difference across the footprint (the widest
+        // pair: on ground mapped flat the two cells the step spans may be any two).
+        step_var = step_var.min(stencil.step_bound);
     }
     let step_sd = step_var.max(0.0).sqrt();
 
@@ -433,13 +438,12 @@ fn plane_weights(uv: &[(f64, f64)], known: &[usize], w: [&mut [f64]; 3]) -> Opti
     Some(())
 }
 
-/// The terrain's own covariance (xx, xy, yy) of the gradient with weights `w` (x, y) over the
-/// cells `known`: −Σ wₐ wᵦ R(dₐᵦ), R at `a * m + b` of `relief` (see the module doc).
-fn terrain_gradient(w: &[&[f64]; 2], known: &[usize], relief: &[f64], m: usize) -> [f64; 3] {
-    let [wx, wy] = *w;
+/// The terrain's own covariance (xx, xy, yy) of the gradient with weights `wx`, `wy` over the
+/// cells `known`: −Σ wₐ wᵦ γ(dₐᵦ), γ at `a * m + b` of `gamma` (see the module doc).
+fn terrain_gradient(wx: &[f64], wy: &[f64], known: &[usize], gamma: &[f64], m: usize) -> [f64; 3] {
     let mut q = [0.0; 3];
     for &a in known {
-        let row = &relief[a * m..a * m + m];
+        let row = &gamma[a * m..a * m + m];
         for &b in known {
             q[0] -= wx[a] * wx[b] * row[b];
             q[1] -= wx[a] * wy[b] * row[b];

@@ -9,8 +9,9 @@
 //! own returns can: for a return p with two others a and b on either side of it, the departure
 //! δ = z_p − (the line from a to b at p) is the error a straight interpolation from a and b makes
 //! at p's distance from them. Its mean square by that distance, the returns' noise taken out, is
-//! the variance of the relief an answer that far from data has not seen: the snapshot adds it to
-//! window answers' calibrated variance ([`super::scales::Relief`]). It follows the terrain: rough
+//! the variance of the relief an answer that far from data has not seen: planner layers bound
+//! their σ with it, and with `gp.unseen_relief` the snapshot adds it to window answers' calibrated
+//! variance ([`super::scales::Relief`]). It follows the terrain: rough
 //! relief gives large departures at short distances, a smooth slope none at any.
 
 use super::data_index::DataIndex;

@@ -85,7 +85,8 @@ pub const DATA_BINS: usize = DATA_EDGES_M.len() + 1;
 
 /// The variance of the relief an answer has not seen, by its distance to the nearest datum of
 /// its map ([`HeightEstimate::data_m`]), learnt from the scans' own returns
-/// ([`super::relief`]): added to window answers' calibrated variance. Linear in ln d between
+/// ([`super::relief`]): the terrain's semivariogram for planner layers, and with `gp.unseen_relief`
+/// added to window answers' calibrated variance. Linear in ln d between
 /// the bins' centres, as d² below the first (no relief at a datum), the last bin's beyond.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Relief {
@@ -94,9 +95,14 @@ pub struct Relief {
 }
 
 impl Relief {
-    /// Whether any relief was learnt (all zero until the calibrator learns one, or when off).
-    pub fn is_learnt(&self) -> bool {
-        self.var_m2.iter().any(|&v| v > 0.0)
+    /// The terrain's semivariogram at distances up to `reach_m`, or `None` unless every bin up
+    /// to the one holding `reach_m` is learnt ([`Semivariogram`]).
+    pub fn semivariogram(&self, reach_m: f64) -> Option<Semivariogram> {
+        let last = data_bin_of(reach_m.max(0.0)).min(DATA_BINS - 1);
+        self.var_m2[..=last]
+            .iter()
+            .all(|&v| v > 0.0 && v.is_finite())
+            .then_some(Semivariogram { relief: *self })
     }
 
     /// The relief variance at distance `data_m` from the nearest datum, m².
@@ -111,6 +117,23 @@ impl Relief {
         let centres: [f64; DATA_BINS] = std::array::from_fn(data_centre_m);
         let (b0, b1, w) = bracket(data_m, &centres);
         self.var_m2[b0] * (1.0 - w) + self.var_m2[b1] * w
+    }
+}
+
+/// Half the mean square of the terrain's increments over a distance s, γ(s), taken as the learnt
+/// departure R(s). For a terrain whose increments grow as s^H (Hurst exponent H) the departure at
+/// the midpoint of two points s either side is R(s) = 2γ(s)(1 − 4^(H−1)): γ = R for a random walk
+/// (H = ½), γ ≈ 2R at H = 0.8. Reading H from how R grows was measured and not kept
+/// (docs/EVALUATION.md "Planner layers").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Semivariogram {
+    relief: Relief,
+}
+
+impl Semivariogram {
+    /// γ at distance `s_m`, m².
+    pub fn at(&self, s_m: f64) -> f64 {
+        self.relief.var_at(s_m)
     }
 }
 
@@ -359,6 +382,22 @@ pub fn class_of(grazing: f64) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_semivariogram_is_the_relief_where_every_near_bin_is_learnt() {
+        let walk = Relief {
+            var_m2: std::array::from_fn(|b| 1e-3 * data_centre_m(b)),
+        };
+        let v = walk.semivariogram(0.6).expect("learnt");
+        assert_eq!(v.at(0.3), walk.var_at(0.3));
+        let mut unlearnt = walk;
+        unlearnt.var_m2[1] = 0.0;
+        assert_eq!(unlearnt.semivariogram(0.6), None);
+        assert!(
+            unlearnt.semivariogram(0.09).is_some(),
+            "only the first bin reaches 9 cm"
+        );
+    }
 
     #[test]
     fn gaussian_shares_give_a_gaussian_and_heavy_tails_a_student_t_that_holds_them() {
