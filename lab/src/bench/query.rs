@@ -73,6 +73,9 @@ pub struct QueryReport {
     /// The grid of every layer asked of a running daemon over loopback Zenoh (bincode) by a
     /// `Client`, the scans fitted by the daemon's own threads: what a planner waits, milliseconds.
     pub daemon_grid_all_layers_ms: f64,
+    /// Of that round trip, the daemon's own time (request decoded, grid evaluated, reply
+    /// encoded: its `query_ms.grid` median), milliseconds; the rest is the transport's.
+    pub daemon_grid_handler_ms: f64,
 }
 
 fn per_item_us(repeats: usize, items: usize, mut pass: impl FnMut()) -> f64 {
@@ -145,8 +148,13 @@ const DAEMON_WAIT: Duration = Duration::from_secs(60);
 /// The grid of every layer as a planner gets it: a daemon on a loopback endpoint of its own is
 /// sent `count` scans of `preset` over iceoryx2 (one at a time, each after the last was taken),
 /// then a `Client` asks for the 100 × 100 grid at 0.1 m around the last pose `repeats` times;
-/// the median round trip, milliseconds.
-fn daemon_grid_ms(terrain: &Heightmap, preset: &ScannerPreset, count: usize, repeats: usize) -> Result<f64> {
+/// the median round trip and the daemon's own median time per grid, milliseconds.
+fn daemon_grid_ms(
+    terrain: &Heightmap,
+    preset: &ScannerPreset,
+    count: usize,
+    repeats: usize,
+) -> Result<(f64, f64)> {
     let endpoint = rangegp_transport::free_loopback_endpoint()?;
     let id = format!("bench{}", std::process::id());
     let mut config = Config {
@@ -211,7 +219,7 @@ fn daemon_grid_ms(terrain: &Heightmap, preset: &ScannerPreset, count: usize, rep
         })
         .collect::<Result<_>>()?;
     v.sort_by(f64::total_cmp);
-    Ok(v[v.len() / 2])
+    Ok((v[v.len() / 2], client.status()?.query_ms.grid.p50_ms))
 }
 
 /// Runs the query benchmark and writes `query.json`.
@@ -265,6 +273,8 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
         .count() as f64
         / points.len().max(1) as f64;
     let n = points.len();
+    let (daemon_grid_all_layers_ms, daemon_grid_handler_ms) =
+        daemon_grid_ms(&terrain, &preset, config.window.capacity, opts.repeats)?;
     let report = QueryReport {
         preset: opts.preset.clone(),
         window_maps: snapshot.maps().len(),
@@ -301,7 +311,8 @@ pub fn run_query(opts: &QueryBenchOptions) -> Result<QueryReport> {
         answered,
         grid_ms: grid_ms(&snapshot, &config, centre, &[], opts.repeats),
         grid_all_layers_ms: grid_ms(&snapshot, &config, centre, &Layer::ALL, opts.repeats),
-        daemon_grid_all_layers_ms: daemon_grid_ms(&terrain, &preset, config.window.capacity, opts.repeats)?,
+        daemon_grid_all_layers_ms,
+        daemon_grid_handler_ms,
     };
     std::fs::write(
         opts.out.join("query.json"),
@@ -337,7 +348,7 @@ pub fn print_query(r: &QueryReport) {
         r.grid_all_layers_ms / r.grid_ms
     );
     println!(
-        "  grid 100 × 100, every layer, from a running daemon over Zenoh {:>6.1} ms",
-        r.daemon_grid_all_layers_ms
+        "  grid 100 × 100, every layer, from a running daemon over Zenoh {:>6.1} ms ({:.1} ms in the daemon)",
+        r.daemon_grid_all_layers_ms, r.daemon_grid_handler_ms
     );
 }

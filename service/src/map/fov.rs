@@ -10,6 +10,8 @@ pub struct FieldOfView {
     cos_band: (f64, f64),
     azimuth_start: f64,
     azimuth_width: f64,
+    /// The arc's ends as unit (x, y) directions, start first: the arc test on cross products.
+    arc_ends: [[f64; 2]; 2],
 }
 
 impl FieldOfView {
@@ -41,11 +43,13 @@ impl FieldOfView {
             (start - margin, width + 2.0 * margin)
         };
         let inclination = ((lo - margin).max(0.0), (hi + margin).min(PI));
+        let end = azimuth_start + azimuth_width;
         Self {
             inclination,
             cos_band: (inclination.1.cos(), inclination.0.cos()),
             azimuth_start,
             azimuth_width,
+            arc_ends: [[azimuth_start.cos(), azimuth_start.sin()], [end.cos(), end.sin()]],
         }
     }
 
@@ -54,15 +58,28 @@ impl FieldOfView {
         self.inclination
     }
 
-    /// True when the sensor-frame vector `v` of length `norm` (> 0) points inside: the band
-    /// test on z / ‖v‖ needs no inverse trigonometry, and a full-turn arc none at all.
+    /// True when the sensor-frame vector `v` of length `norm` (> 0) points inside, with no
+    /// inverse trigonometry (the membership test of every search along a line): the band on
+    /// z / ‖v‖, the arc on the signs of v's cross products with its ends. v lies counter-
+    /// clockwise of the start by at most π when the first is non-negative, and clockwise of the
+    /// end by at most π when the second is: an arc up to π wide holds v when both hold, a wider
+    /// one unless both fail (v is then in the complement, narrower than π).
     pub fn contains_vector(&self, v: &[f64; 3], norm: f64) -> bool {
         let c = v[2] / norm;
         if c < self.cos_band.0 || c > self.cos_band.1 {
             return false;
         }
-        self.azimuth_width >= TAU
-            || (v[1].atan2(v[0]) - self.azimuth_start).rem_euclid(TAU) <= self.azimuth_width
+        if self.azimuth_width >= TAU {
+            return true;
+        }
+        let [s, e] = self.arc_ends;
+        let after_start = s[0] * v[1] - s[1] * v[0] >= 0.0;
+        let before_end = v[0] * e[1] - v[1] * e[0] >= 0.0;
+        if self.azimuth_width <= PI {
+            after_start && before_end
+        } else {
+            after_start || before_end
+        }
     }
 }
 
