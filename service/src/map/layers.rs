@@ -635,6 +635,46 @@ mod tests {
     }
 
     #[test]
+    fn a_footprint_deep_in_a_gap_takes_the_terrains_slope_from_its_relief_share() {
+        let res = 0.1;
+        let z = plane(11, 11, res, 0.0, 0.0);
+        // A random walk of 1 cm over a metre, learnt at every distance.
+        let m = LayerModel {
+            relief: Relief {
+                var_m2: std::array::from_fn(|b| 1e-4 * crate::map::scales::data_centre_m(b)),
+            },
+            ..layer_model()
+        };
+        let s = Stencil::new(&m, res);
+        // Each cell's unseen relief at least the terrain's variation across the footprint: the
+        // shares of two cells differ by what the terrain differs by over their distance, so the
+        // slope they leave is the terrain's own (the share common to all moves no slope).
+        let relief_sd = vec![0.05; z.len()];
+        let sd = relief_sd.clone();
+        let gap = HeightGrid {
+            relief_sd: &relief_sd,
+            ..grid11(&z, &sd)
+        };
+        let from_relief = cell_layers(&gap, &s, &m, 5, 5).expect("answered");
+        let wide = vec![10.0; z.len()];
+        let bounded = cell_layers(&grid11(&z, &wide), &s, &m, 5, 5).expect("answered");
+        assert!(
+            (from_relief.slope_sd - bounded.slope_sd).abs() < 1e-9 * bounded.slope_sd,
+            "{} against the terrain's {}",
+            from_relief.slope_sd,
+            bounded.slope_sd
+        );
+        // Fully correlated (the terrain not learnt), the same share moves no slope at all.
+        let unlearnt = LayerModel {
+            relief: Relief::default(),
+            ..m
+        };
+        let s = Stencil::new(&unlearnt, res);
+        let rigid = cell_layers(&gap, &s, &unlearnt, 5, 5).expect("answered");
+        assert!(rigid.slope_sd < 1e-6, "{rigid:?}");
+    }
+
+    #[test]
     fn a_step_beyond_the_limit_is_lethal_and_flat_ground_is_free() {
         let res = 0.1;
         let mut z = plane(11, 11, res, 0.0, 0.0);
