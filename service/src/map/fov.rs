@@ -8,7 +8,7 @@ pub struct FieldOfView {
     inclination: (f64, f64),
     /// cos of the inclination interval's ends (high end first): the band as bounds on z / ‖v‖.
     cos_band: (f64, f64),
-    azimuth_start: f64,
+    /// The arc's width, radians (TAU for a full turn).
     azimuth_width: f64,
     /// The arc's ends as unit (x, y) directions, start first: the arc test on cross products.
     arc_ends: [[f64; 2]; 2],
@@ -47,7 +47,6 @@ impl FieldOfView {
         Self {
             inclination,
             cos_band: (inclination.1.cos(), inclination.0.cos()),
-            azimuth_start,
             azimuth_width,
             arc_ends: [[azimuth_start.cos(), azimuth_start.sin()], [end.cos(), end.sin()]],
         }
@@ -89,9 +88,10 @@ mod tests {
 
     /// The definition on angles, for reference.
     fn contains(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {
+        let start = fov.arc_ends[0][1].atan2(fov.arc_ends[0][0]);
         inclination >= fov.inclination.0
             && inclination <= fov.inclination.1
-            && (azimuth - fov.azimuth_start).rem_euclid(TAU) <= fov.azimuth_width
+            && (azimuth - start).rem_euclid(TAU) <= fov.azimuth_width
     }
 
     fn sees(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {

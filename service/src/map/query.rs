@@ -136,8 +136,9 @@ pub fn elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> ElevationItem {
     elevation_with_relief(snapshot, x, y).0
 }
 
-/// [`elevation`] with the unseen relief's share of its variance, m² (0 where refused): what
-/// planner layers need to correlate that share over its own distances ([`super::layers`]).
+/// [`elevation`] with the unseen relief's share of its variance, m² (0 where refused; layers
+/// clamp it to the whole): what planner layers need to correlate that share over its own
+/// distances ([`super::layers`]).
 pub fn elevation_with_relief(snapshot: &MapSnapshot, x: f64, y: f64) -> (ElevationItem, f64) {
     let refused = |refusal: Refusal| {
         let item = ElevationItem {
@@ -189,7 +190,7 @@ pub fn elevation_with_relief(snapshot: &MapSnapshot, x: f64, y: f64) -> (Elevati
         provenance: provenance(snapshot, &first, x, y),
         refusal: None,
     };
-    (item, relief.min(var))
+    (item, relief)
 }
 
 /// How much data stands behind `answer` at (x, y), graded by the map that gave it, for the
