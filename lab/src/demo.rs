@@ -13,7 +13,7 @@ use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_service::metrics::latency::percentile;
 use rangegp_sim::ScannerPreset;
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::reserve_loopback_endpoint;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -102,7 +102,8 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
         bail!("--scans, --rate-hz and --grid-resolution-m must be positive");
     }
     std::fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
-    let endpoint = free_loopback_endpoint().context("reserving a loopback port")?;
+    let reserved = reserve_loopback_endpoint().context("reserving a loopback port")?;
+    let endpoint = reserved.endpoint().to_owned();
     let map_id = format!("demo-{}-{}", std::process::id(), now_ns() % 1_000_000_007);
     let mut config = Config {
         map_id: map_id.clone(),
@@ -118,6 +119,7 @@ pub fn run(opts: &DemoOptions) -> Result<DemoSummary> {
     let daemon = Daemon::builder(config.clone())
         .start()
         .context("starting the daemon")?;
+    drop(reserved);
 
     let client = Client::builder(&map_id)
         .connect([endpoint])

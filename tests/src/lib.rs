@@ -11,7 +11,7 @@ use rangegp_proto::msg::StatusReply;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_sim::ScannerPreset;
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::reserve_loopback_endpoint;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
@@ -65,7 +65,8 @@ pub struct Harness {
 impl Harness {
     /// Starts a daemon with unique names, letting `tweak` adjust the configuration first.
     pub fn start(tweak: impl FnOnce(&mut Config)) -> Result<Self> {
-        let endpoint = free_loopback_endpoint()?;
+        let port = reserve_loopback_endpoint()?;
+        let endpoint = port.endpoint().to_owned();
         let mut config = Config {
             map_id: unique_id("t"),
             ..Config::default()
@@ -80,6 +81,7 @@ impl Harness {
             config.checkpoint.enabled = false;
         }
         let daemon = Daemon::builder(config.clone()).start()?;
+        drop(port);
         let client = Client::builder(&config.map_id)
             .connect([endpoint.clone()])
             .timeout(WAIT)

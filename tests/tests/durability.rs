@@ -22,7 +22,7 @@ use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, WAIT};
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::{reserve_loopback_endpoint, ReservedEndpoint};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -135,13 +135,15 @@ fn a_publisher_killed_mid_stream_is_replaced_and_its_successor_accepted_within_2
     Ok(())
 }
 
-/// The daemon configuration of one kill cycle: fresh endpoint, the shared checkpoint directory.
-fn cycle_config(base: &Config, dir: &Path) -> Result<(Config, PathBuf)> {
+/// The daemon configuration of one kill cycle: a fresh endpoint (held until the child daemon
+/// listens on it), the shared checkpoint directory.
+fn cycle_config(base: &Config, dir: &Path) -> Result<(Config, PathBuf, ReservedEndpoint)> {
     let mut config = base.clone();
-    config.zenoh.listen = vec![free_loopback_endpoint()?];
+    let port = reserve_loopback_endpoint()?;
+    config.zenoh.listen = vec![port.endpoint().to_owned()];
     let path = dir.join("rangegpd.toml");
     std::fs::write(&path, toml::to_string(&config)?)?;
-    Ok((config, path))
+    Ok((config, path, port))
 }
 
 /// The reference: the scans a checkpoint names, replayed in order through validation, the fit
@@ -254,9 +256,10 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
             ensure!(cycle == 0, "cycle {cycle}: nothing to restore");
         }
 
-        let (config, path) = cycle_config(&base, &dir)?;
+        let (config, path, port) = cycle_config(&base, &dir)?;
         let mut daemon = ChildProcess::spawn("child_daemon", &path.to_string_lossy())?;
         daemon.expect("ready", WAIT)?;
+        drop(port);
         let client = Client::builder(&config.map_id)
             .connect(config.zenoh.listen.clone())
             .timeout(WAIT)

@@ -25,7 +25,7 @@ use rangegp_service::map::{query, MapSnapshot};
 use rangegp_sim::path::Path;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{unique_id, world, WAIT};
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::reserve_loopback_endpoint;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -117,10 +117,12 @@ fn answers_equal(site: &Client, points: &[[f64; 2]], want: &[Option<(f64, f64)>]
 
 #[test]
 fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
-    let endpoint = free_loopback_endpoint()?;
+    let reserved = reserve_loopback_endpoint()?;
+    let endpoint = reserved.endpoint().to_owned();
     let site_id = unique_id("site");
     let site_keys = MapKeys::new(&site_id)?;
     let router = StorageRouter::start(&endpoint, &site_keys, WAIT)?;
+    drop(reserved);
 
     let mut site_config = daemon_config(&site_id, &endpoint);
     site_config.fleet.role = FleetRole::Site;

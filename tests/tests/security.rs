@@ -9,7 +9,7 @@ use rangegp_lab::certs::Authority;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_tests::{unique_id, WAIT};
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::reserve_loopback_endpoint;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -51,11 +51,8 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     let rogue = Authority::new(&dir, "rogue-ca")?;
     rogue.leaf(&dir, "forged", "planner-1")?;
 
-    let port = free_loopback_endpoint()?
-        .rsplit(':')
-        .next()
-        .context("port")?
-        .to_owned();
+    let reserved = reserve_loopback_endpoint()?;
+    let port = reserved.endpoint().rsplit(':').next().context("port")?.to_owned();
     let daemon_config = render(
         "zenoh-rangegpd.json5",
         &dir,
@@ -71,6 +68,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     config.metrics.listen = String::new();
     config.zenoh.config_file = Some(daemon_config);
     let daemon = Daemon::builder(config.clone()).start()?;
+    drop(reserved);
     let map_id = config.map_id.clone();
 
     let allowed = planner(&dir, &port, &map_id, "planner")?;

@@ -77,9 +77,62 @@ pub fn zenoh_config(
     Ok(config)
 }
 
-/// A loopback TCP endpoint on a port the OS just handed out (`tcp/127.0.0.1:<port>`), for
-/// demos and tests that must not collide with each other or with a running daemon.
-pub fn free_loopback_endpoint() -> std::io::Result<String> {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
-    Ok(format!("tcp/127.0.0.1:{}", listener.local_addr()?.port()))
+/// A loopback TCP port held for a listener that is about to start: a bound, not listening,
+/// `SO_REUSEADDR` socket. While it is held the kernel hands the port to no other `bind(0)` and no
+/// outgoing connection, yet a listener that also sets `SO_REUSEADDR` (Zenoh's TCP link does) may
+/// bind it, in this process or a child. Drop it once the listener is up. Probing a free port and
+/// releasing it before the listener binds left a window in which a parallel test took the port.
+#[derive(Debug)]
+pub struct ReservedEndpoint {
+    _socket: socket2::Socket,
+    endpoint: String,
+}
+
+impl ReservedEndpoint {
+    /// The Zenoh endpoint of the held port, `tcp/127.0.0.1:<port>`.
+    pub fn endpoint(&self) -> &str {
+        &self.endpoint
+    }
+}
+
+/// Holds a loopback TCP port the OS just handed out, for demos and tests that must not collide
+/// with each other or with a running daemon (see [`ReservedEndpoint`]).
+pub fn reserve_loopback_endpoint() -> std::io::Result<ReservedEndpoint> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::IPV4, Type::STREAM, Some(Protocol::TCP))?;
+    socket.set_reuse_address(true)?;
+    socket.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())?;
+    let port = socket
+        .local_addr()?
+        .as_socket()
+        .ok_or_else(|| std::io::Error::other("a TCP socket without an IP address"))?
+        .port();
+    Ok(ReservedEndpoint {
+        _socket: socket,
+        endpoint: format!("tcp/127.0.0.1:{port}"),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_reserved_port_takes_a_listener_and_no_second_reservation() {
+        let reserved = reserve_loopback_endpoint().expect("reserve");
+        let port: u16 = reserved
+            .endpoint()
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .expect("a port");
+        let others: Vec<ReservedEndpoint> = (0..64)
+            .map(|_| reserve_loopback_endpoint().expect("reserve"))
+            .collect();
+        assert!(others.iter().all(|o| o.endpoint() != reserved.endpoint()));
+        // std's listener sets SO_REUSEADDR, as Zenoh's does: it binds the held port.
+        let listener = std::net::TcpListener::bind(("127.0.0.1", port)).expect("listen");
+        let _client = std::net::TcpStream::connect(("127.0.0.1", port)).expect("connect");
+        listener.accept().expect("accept");
+    }
 }

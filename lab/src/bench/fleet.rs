@@ -70,10 +70,12 @@ fn wait(client: &Client, what: &str, done: impl Fn(&StatusReply) -> bool) -> Res
 /// Runs the fleet benchmark and writes `fleet.json`.
 pub fn run_fleet(opts: &FleetBenchOptions) -> Result<FleetReport> {
     std::fs::create_dir_all(&opts.out)?;
-    let endpoint = rangegp_transport::free_loopback_endpoint()?;
+    let reserved = rangegp_transport::reserve_loopback_endpoint()?;
+    let endpoint = reserved.endpoint().to_owned();
     let tag = std::process::id();
     let (site_id, robot_id) = (format!("benchsite{tag}"), format!("benchrobot{tag}"));
     let _router = StorageRouter::start(&endpoint, &MapKeys::new(&site_id)?, WAIT)?;
+    drop(reserved);
     let mut site_config = daemon_config(&site_id, &endpoint);
     site_config.fleet.role = FleetRole::Site;
     let _site_daemon = Daemon::builder(site_config).start()?;

@@ -155,7 +155,8 @@ fn daemon_grid_ms(
     count: usize,
     repeats: usize,
 ) -> Result<(f64, f64)> {
-    let endpoint = rangegp_transport::free_loopback_endpoint()?;
+    let reserved = rangegp_transport::reserve_loopback_endpoint()?;
+    let endpoint = reserved.endpoint().to_owned();
     let id = format!("bench{}", std::process::id());
     let mut config = Config {
         map_id: id.clone(),
@@ -166,6 +167,7 @@ fn daemon_grid_ms(
     config.metrics.listen = "127.0.0.1:0".into();
     config.checkpoint.enabled = false;
     let _daemon = Daemon::builder(config.clone()).start()?;
+    drop(reserved);
     let client = Client::builder(&config.map_id)
         .connect([endpoint])
         .timeout(DAEMON_WAIT)

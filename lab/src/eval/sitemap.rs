@@ -19,7 +19,7 @@ use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_service::map::aggregate::Aggregate;
 use rangegp_sim::{level_pose, simulate_scan, CraterParams, Heightmap, ScannerPreset};
-use rangegp_transport::free_loopback_endpoint;
+use rangegp_transport::reserve_loopback_endpoint;
 use serde::Serialize;
 use std::time::{Duration, Instant};
 
@@ -85,7 +85,8 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
     let warm_at = n + n / 2;
 
     let state = TempDir::new(&format!("sitemap-{}", std::process::id()))?;
-    let endpoint = free_loopback_endpoint()?;
+    let reserved = reserve_loopback_endpoint()?;
+    let endpoint = reserved.endpoint().to_owned();
     let mut config = Config {
         map_id: format!("sitemap-{}", std::process::id()),
         ..Config::default()
@@ -97,6 +98,7 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
     let daemon = Daemon::builder(config.clone())
         .start()
         .context("starting the daemon")?;
+    drop(reserved);
     let client = Client::builder(&config.map_id)
         .connect([endpoint])
         .timeout(Duration::from_secs(20))
