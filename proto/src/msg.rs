@@ -204,7 +204,8 @@ pub enum Layer {
     SlopeRisk,
     /// P(step > the robot's max step).
     StepRisk,
-    /// Share of the footprint no map answers.
+    /// Share of the footprint unknown: no map answers, or the answer's σ is wider than the
+    /// robot's max step.
     UnknownRisk,
     /// P(the terrain stops the robot): P(slope or step over its limit), the larger of the two
     /// (both follow from the same height errors, so they rise and fall together).

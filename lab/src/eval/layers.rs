@@ -30,15 +30,21 @@ pub const SLOPE_COV95: (f64, f64) = (0.90, 0.98);
 /// Planned path cells that are truly untraversable, at most.
 pub const MAX_PATH_UNSAFE: f64 = 0.01;
 /// The same in the quick form, whose three terrains give the steepest (fBm at 30°) a third of
-/// the pairs where the full run gives it a ninth: 1.3 × the 0.023 the quick form measured
-/// (2026-11-24, seed 0) while the full run met [`MAX_PATH_UNSAFE`] (0.0096).
-pub const QUICK_MAX_PATH_UNSAFE: f64 = 0.03;
+/// the pairs where the full run gives it a ninth: 1.3 × the 0.0135 the quick form measured
+/// (2026-11-27, seed 0) while the full run met [`MAX_PATH_UNSAFE`] (0.0075).
+pub const QUICK_MAX_PATH_UNSAFE: f64 = 0.018;
 /// Planned path length over the oracle's, at most.
 pub const MAX_PATH_LENGTH_RATIO: f64 = 1.15;
 /// Start / goal pairs planned, at least.
 pub const MIN_PAIRS: usize = 50;
 /// Weight of a cell's risk on the length of a step through it.
 pub const RISK_WEIGHT: f64 = 10.0;
+/// The risk weights the planning is also run with (same pairs), to show what a planner's price
+/// of a stop buys: the share of unsafe path cells against the length driven.
+pub const RISK_WEIGHT_SWEEP: [f64; 5] = [3.0, 10.0, 30.0, 100.0, 300.0];
+/// Where [`RISK_WEIGHT`] lies in [`RISK_WEIGHT_SWEEP`] (the plans the bars judge).
+const PLANNER_WEIGHT: usize = 1;
+const _: () = assert!(RISK_WEIGHT_SWEEP[PLANNER_WEIGHT] == RISK_WEIGHT);
 /// Side of the scored box around the last pose, metres.
 pub const BOX_M: f64 = 16.0;
 /// Grid resolution, metres.
@@ -83,6 +89,8 @@ pub struct LayerCase {
     pub path_cells: [usize; 2],
     /// Planned length over the oracle's, mean over pairs.
     pub path_length_ratio: f64,
+    /// The same pairs planned with each weight of [`RISK_WEIGHT_SWEEP`].
+    pub plans_by_risk_weight: Vec<WeightedPlans>,
     /// The tail shape the snapshot learnt (degrees of freedom, scale).
     pub tails: [f64; 2],
     /// The correlation length of height errors the snapshot learnt, metres.
@@ -90,6 +98,19 @@ pub struct LayerCase {
     /// Slope 95 % coverage with other correlation lengths of the height errors (metres,
     /// coverage): how much the σ depends on that length.
     pub slope_cov95_by_error_length: Vec<[f64; 2]>,
+}
+
+/// The pairs of one case planned with one risk weight.
+#[derive(Debug, Clone, Serialize)]
+pub struct WeightedPlans {
+    /// Weight of a cell's risk on the length of a step through it.
+    pub risk_weight: f64,
+    /// Pairs with a planned path.
+    pub planned: usize,
+    /// Planned path cells, and those truly untraversable.
+    pub path_cells: [usize; 2],
+    /// Sum over planned pairs of the planned length over the oracle's.
+    pub length_ratio_sum: f64,
 }
 
 /// What `layers.json` holds.
@@ -123,6 +144,9 @@ pub struct LayersReport {
     pub pairs: usize,
     /// Pairs without a planned path where the oracle had one.
     pub no_path: usize,
+    /// Pooled over the cases per weight of [`RISK_WEIGHT_SWEEP`]: (weight, unsafe path share,
+    /// mean length ratio).
+    pub path_by_risk_weight: Vec<[f64; 3]>,
     /// Risk reliability: (mean predicted, observed frequency, cells) per tenth of risk.
     pub risk_reliability: Vec<(f64, f64, usize)>,
     /// The same for the slope risk against the true slope's label alone.
@@ -216,6 +240,18 @@ pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
         path_length_ratio: mean(&ratios),
         pairs: cases.iter().map(|c| c.pairs).sum(),
         no_path,
+        path_by_risk_weight: RISK_WEIGHT_SWEEP
+            .iter()
+            .enumerate()
+            .map(|(i, &w)| {
+                let plans = || cases.iter().map(move |c: &LayerCase| &c.plans_by_risk_weight[i]);
+                let cells: usize = plans().map(|p| p.path_cells[0]).sum();
+                let bad: usize = plans().map(|p| p.path_cells[1]).sum();
+                let planned: usize = plans().map(|p| p.planned).sum();
+                let ratio: f64 = plans().map(|p| p.length_ratio_sum).sum();
+                [w, bad as f64 / cells.max(1) as f64, ratio / planned.max(1) as f64]
+            })
+            .collect(),
         risk_reliability: reliability,
         slope_risk_reliability: self::reliability(&pool.slope_risk),
         step_risk_reliability: self::reliability(&pool.step_risk),
@@ -367,12 +403,13 @@ fn run_case(
             .collect::<Vec<_>>(),
     );
     let sweep = error_length_sweep(&plain, &truth, model, n);
-    let plan = plan_pairs(
+    let plans = plan_pairs(
         &reply,
         &truth,
         pairs,
         seed ^ spec.name.len() as u64 ^ preset.name.len() as u64,
     );
+    let plan = &plans[PLANNER_WEIGHT];
     let scored = pool.slope_err2.len();
     let case = LayerCase {
         terrain: spec.name.clone(),
@@ -392,6 +429,16 @@ fn run_case(
         no_path: plan.no_path,
         path_cells: [plan.path_cells, plan.unsafe_cells],
         path_length_ratio: mean(&plan.ratios),
+        plans_by_risk_weight: plans
+            .iter()
+            .zip(RISK_WEIGHT_SWEEP)
+            .map(|(p, risk_weight)| WeightedPlans {
+                risk_weight,
+                planned: p.ratios.len(),
+                path_cells: [p.path_cells, p.unsafe_cells],
+                length_ratio_sum: p.ratios.iter().sum(),
+            })
+            .collect(),
         slope_cov95_by_error_length: sweep,
         tails: [model.tails.dof, model.tails.scale],
         error_length_m: model.error_length_m,
@@ -517,8 +564,9 @@ struct Plan {
     ratios: Vec<f64>,
 }
 
-/// A* between `pairs` random start / goal cells over the cost layer and over the true labels.
-fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -> Plan {
+/// A* between `pairs` random start / goal cells over the cost layer, once per weight of
+/// [`RISK_WEIGHT_SWEEP`] (the same pairs each time), and over the true labels.
+fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -> Vec<Plan> {
     let (cols, rows) = (reply.cols as usize, reply.rows as usize);
     let res = reply.resolution_m;
     let robot = &reply.robot;
@@ -533,17 +581,18 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
     let blocked_truth: Vec<bool> = (0..cols * rows)
         .map(|k| untraversable[k] || !observed[k])
         .collect();
-    let map_cost = |k: usize| 1.0 + RISK_WEIGHT * risk.get(k).copied().flatten().map_or(1.0, f64::from);
+    let cell_risk = |k: usize| risk.get(k).copied().flatten().map_or(1.0, f64::from);
+    let mut plans: Vec<Plan> = RISK_WEIGHT_SWEEP.iter().map(|_| Plan::default()).collect();
     let free: Vec<usize> = (0..cols * rows)
         .filter(|&k| !blocked_map[k] && !blocked_truth[k])
         .collect();
-    let mut plan = Plan::default();
     if free.len() < 2 {
-        return plan;
+        return plans;
     }
     let mut rng = Pcg64::seed_from_u64(seed);
     let mut attempts = 0;
-    while plan.pairs < pairs && attempts < 50 * pairs {
+    let mut planned = 0;
+    while planned < pairs && attempts < 50 * pairs {
         attempts += 1;
         let (a, b) = (
             free[rng.random_range(0..free.len())],
@@ -556,17 +605,20 @@ fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -
         let Some((_, oracle_len)) = astar(cols, rows, a, b, &blocked_truth, &|_| 1.0) else {
             continue;
         };
-        plan.pairs += 1;
-        match astar(cols, rows, a, b, &blocked_map, &map_cost) {
-            None => plan.no_path += 1,
-            Some((path, length)) => {
-                plan.path_cells += path.len();
-                plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
-                plan.ratios.push(length / oracle_len.max(1e-9));
+        planned += 1;
+        for (plan, weight) in plans.iter_mut().zip(RISK_WEIGHT_SWEEP) {
+            plan.pairs += 1;
+            match astar(cols, rows, a, b, &blocked_map, &|k| 1.0 + weight * cell_risk(k)) {
+                None => plan.no_path += 1,
+                Some((path, length)) => {
+                    plan.path_cells += path.len();
+                    plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
+                    plan.ratios.push(length / oracle_len.max(1e-9));
+                }
             }
         }
     }
-    plan
+    plans
 }
 
 /// The cheapest 8-connected path from `a` to `b` avoiding `blocked`, each step its length in
@@ -729,4 +781,7 @@ pub fn print_layers(r: &LayersReport) {
         r.no_path,
         r.pairs
     );
+    for [weight, unsafe_share, ratio] in &r.path_by_risk_weight {
+        println!("  risk weight {weight:>5}: unsafe {unsafe_share:.4}, length ratio {ratio:.3}");
+    }
 }

@@ -19,6 +19,12 @@
 //! at its distance from data, rᵢ²: that share is the terrain itself between returns, so it is
 //! taken apart (σᵢ² above is the rest) and correlated as the terrain is, max(0, rᵢrⱼ − γ(dᵢⱼ)):
 //! two cells deep in a gap differ by what the terrain differs by over their distance.
+//!
+//! A cell whose height σ is wider than the robot's step limit counts as unknown: a height known
+//! no better than that cannot tell a drivable footprint from a step, and the terrain's bounds
+//! above, learnt from the relief the scans saw, say nothing of a riser no scan saw (a terrace's
+//! face seen from above, its foot hidden behind its edge, is mapped as a smooth extrapolation of
+//! σ 0.5–1 m that the bounds would call a 4 % risk).
 
 use super::scales::{ErrorCorrelation, Relief, TailShape};
 use super::window::MapSnapshot;
@@ -200,7 +206,8 @@ pub struct CellLayers {
     pub slope_risk: f64,
     /// P(step > max step).
     pub step_risk: f64,
-    /// Share of the footprint unanswered.
+    /// Share of the footprint unknown: unanswered, or answered with a σ wider than the robot's
+    /// step limit.
     pub unknown_risk: f64,
     /// P(slope or step stops the robot): the larger of the two (they share their height errors).
     pub risk: f64,
@@ -220,8 +227,9 @@ impl CellLayers {
     }
 }
 
-/// The layers of cell (col, row) of `grid`, or `None` when its centre is unanswered or less than
-/// [`MIN_KNOWN_SHARE`] of its footprint is answered (at least three cells, not all in a line).
+/// The layers of cell (col, row) of `grid`, or `None` when its centre is unknown or less than
+/// [`MIN_KNOWN_SHARE`] of its footprint is known (at least three cells, not all in a line). A cell
+/// is known where a map answers it with a σ no wider than the robot's step limit.
 pub fn cell_layers(
     grid: &HeightGrid,
     stencil: &Stencil,
@@ -233,8 +241,11 @@ pub fn cell_layers(
         let ok = i >= 0 && j >= 0 && (i as usize) < grid.cols && (j as usize) < grid.rows;
         ok.then(|| j as usize * grid.cols + i as usize)
     };
+    // A height known no better than ± the robot's step limit cannot tell a drivable footprint
+    // from a step: such a cell counts as unknown (see the module doc).
+    let judged = |c: usize| grid.z[c].is_finite() && grid.sd[c] <= model.robot.max_step_m;
     let centre = at(col as i64, row as i64)?;
-    if !grid.z[centre].is_finite() {
+    if !judged(centre) {
         return None;
     }
     let m = stencil.len();
@@ -256,7 +267,7 @@ pub fn cell_layers(
         let Some(c) = at(col as i64 + i64::from(di), row as i64 + i64::from(dj)) else {
             continue;
         };
-        if grid.z[c].is_finite() && grid.sd[c].is_finite() {
+        if judged(c) {
             known.push(k);
             z[k] = grid.z[c];
             let total = grid.sd[c].max(0.0);
@@ -603,17 +614,50 @@ mod tests {
     }
 
     #[test]
+    fn heights_wider_than_the_step_limit_are_unknown_to_the_layers() {
+        let res = 0.1;
+        let z = plane(11, 11, res, 0.0, 0.0);
+        let m = layer_model();
+        let limit = m.robot.max_step_m;
+        let s = Stencil::new(&m, res);
+        let mut sd = vec![0.01; z.len()];
+        let sure = cell_layers(&grid11(&z, &sd), &s, &m, 5, 5).expect("answered");
+        assert_eq!(sure.unknown_risk, 0.0);
+        // One footprint cell known to ± the limit, one just wider.
+        sd[5 * 11 + 6] = limit;
+        sd[5 * 11 + 4] = limit * 1.001;
+        let one = cell_layers(&grid11(&z, &sd), &s, &m, 5, 5).expect("answered");
+        assert!(
+            (one.unknown_risk - 1.0 / s.len() as f64).abs() < 1e-12,
+            "{} of {} cells",
+            one.unknown_risk * s.len() as f64,
+            s.len()
+        );
+        assert!(one.traversal_cost >= one.unknown_risk);
+        // A smooth extrapolation of σ 0.8 m (a terrace's hidden foot): no layers, at any cell.
+        let gap = vec![0.8; z.len()];
+        assert_eq!(cell_layers(&grid11(&z, &gap), &s, &m, 5, 5), None);
+        sd[5 * 11 + 5] = 0.8;
+        assert_eq!(
+            cell_layers(&grid11(&z, &sd), &s, &m, 5, 5),
+            None,
+            "the centre unknown"
+        );
+    }
+
+    #[test]
     fn ground_mapped_flat_with_wide_sigma_is_risky_and_no_less_known_than_the_terrain() {
         let res = 0.1;
         let z = plane(11, 11, res, 0.001, 0.0);
-        let sd = vec![1.0; z.len()];
+        // As wide as a height may be and still be judged: the robot's step limit.
+        let sd = vec![layer_model().robot.max_step_m; z.len()];
         let grid = grid11(&z, &sd);
         let unbounded = layer_model();
         let s = Stencil::new(&unbounded, res);
         let wide = cell_layers(&grid, &s, &unbounded, 5, 5).expect("answered");
-        // A one-sided exceedance along the mapped gradient stopped at ½ here; the true gradient
-        // lies outside the limit's disc almost surely.
-        assert!(wide.slope_risk > 0.9 && wide.step_risk > 0.8, "{wide:?}");
+        // A one-sided exceedance along the mapped gradient stopped at ½ here, however wide σ;
+        // two-sided, the risk grows past it with σ.
+        assert!(wide.slope_risk > 0.55 && wide.step_risk > 0.3, "{wide:?}");
         // A terrain learnt as a random walk of 1 cm over a metre: its slopes over the footprint
         // are of a degree or so, whatever σ the heights claim.
         let bounded = LayerModel {
@@ -656,7 +700,7 @@ mod tests {
             ..grid11(&z, &sd)
         };
         let from_relief = cell_layers(&gap, &s, &m, 5, 5).expect("answered");
-        let wide = vec![10.0; z.len()];
+        let wide = vec![m.robot.max_step_m; z.len()];
         let bounded = cell_layers(&grid11(&z, &wide), &s, &m, 5, 5).expect("answered");
         assert!(
             (from_relief.slope_sd - bounded.slope_sd).abs() < 1e-9 * bounded.slope_sd,

@@ -451,6 +451,67 @@ mod tests {
     }
 
     #[test]
+    fn a_map_scales_its_rays_by_its_own_distance_from_data_not_the_nearest_maps() {
+        // Two scanners 5 m apart along x, both looking along +x: ahead of the front one the
+        // front map is the nearest, and the back map, 5 m farther, has data there of its own at
+        // other distances. With the unseen relief growing with distance from data, each map's
+        // factor is the one its own distance gives.
+        let terrain = family_terrain("craters", 1, 60.0);
+        let mut window = Window::new(4);
+        for (k, x) in [-5.0, 0.0].into_iter().enumerate() {
+            let z = terrain.height(x, 0.0).expect("on the terrain") + 0.75;
+            let mut scan = scan_of(&terrain, nalgebra::Isometry3::translation(x, 0.0, z));
+            scan.sequence = k as u64 + 1;
+            window.push(Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit")));
+        }
+        let mut scales = crate::map::scales::SigmaScales {
+            relief_in_heights: true,
+            ..Default::default()
+        };
+        scales.relief.var_m2 = std::array::from_fn(|b| 1e-3 * crate::map::scales::data_centre_m(b));
+        let snapshot = window.snapshot().with_scales(scales);
+        let back = snapshot
+            .maps()
+            .iter()
+            .find(|m| m.sensor_position().x < -4.0)
+            .expect("the back map");
+        // Where the back map's data lie farthest beyond the nearest map's.
+        let (gap, p, own_estimate) = (0..=24)
+            .flat_map(|i| (0..=16).map(move |j| (3.0 + 0.25 * f64::from(i), -2.0 + 0.25 * f64::from(j))))
+            .filter_map(|(x, y)| {
+                let e = back.elevation(x, y)?;
+                let nearest = raw_elevation(&snapshot, x, y)?;
+                Some((e.data_m - nearest.estimate.data_m, Vector3::new(x, y, e.z), e))
+            })
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .expect("the back map answers ahead of the front one");
+        assert!(gap > 0.2, "the premise: the back map's data only {gap} m farther");
+        let own = map_sd_factor(&snapshot, back, &p);
+        let rho = (p.x + 5.0).hypot(p.y);
+        let expected = snapshot
+            .scales
+            .calibrate(Source::Window, rho, &own_estimate)
+            .sd_factor;
+        assert!(
+            (own - expected).abs() <= 1e-9 * expected,
+            "{own} against {expected}"
+        );
+        // Its own σ so scaled is its own calibrated height σ there; the nearest map's factor
+        // (the front map's, near its data) would give another.
+        let calibrated = snapshot
+            .scales
+            .calibrate(Source::Window, rho, &own_estimate)
+            .var_m2
+            .sqrt();
+        assert!((own_estimate.var.sqrt() * own - calibrated).abs() <= 1e-9 * calibrated);
+        let nearest = sd_factor(&snapshot, Source::Window, &p);
+        assert!(
+            (own - nearest).abs() > 0.1 * nearest,
+            "the back map's factor {own} against the nearest map's {nearest}"
+        );
+    }
+
+    #[test]
     fn an_answer_wider_than_the_bound_is_refused_as_too_uncertain_and_unseen_ground_as_unobserved() {
         let (snapshot, poses) = crater_window(4);
         let ahead = poses[3] * nalgebra::Point3::new(3.0, 0.5, 0.0);
