@@ -65,8 +65,8 @@ pub struct Harness {
 impl Harness {
     /// Starts a daemon with unique names, letting `tweak` adjust the configuration first.
     pub fn start(tweak: impl FnOnce(&mut Config)) -> Result<Self> {
-        let port = reserve_loopback_endpoint()?;
-        let endpoint = port.endpoint().to_owned();
+        let reserved = reserve_loopback_endpoint()?;
+        let endpoint = reserved.endpoint().to_owned();
         let mut config = Config {
             map_id: unique_id("t"),
             ..Config::default()
@@ -81,7 +81,7 @@ impl Harness {
             config.checkpoint.enabled = false;
         }
         let daemon = Daemon::builder(config.clone()).start()?;
-        drop(port);
+        drop(reserved);
         let client = Client::builder(&config.map_id)
             .connect([endpoint.clone()])
             .timeout(WAIT)

@@ -139,11 +139,11 @@ fn a_publisher_killed_mid_stream_is_replaced_and_its_successor_accepted_within_2
 /// listens on it), the shared checkpoint directory.
 fn cycle_config(base: &Config, dir: &Path) -> Result<(Config, PathBuf, ReservedEndpoint)> {
     let mut config = base.clone();
-    let port = reserve_loopback_endpoint()?;
-    config.zenoh.listen = vec![port.endpoint().to_owned()];
+    let reserved = reserve_loopback_endpoint()?;
+    config.zenoh.listen = vec![reserved.endpoint().to_owned()];
     let path = dir.join("rangegpd.toml");
     std::fs::write(&path, toml::to_string(&config)?)?;
-    Ok((config, path, port))
+    Ok((config, path, reserved))
 }
 
 /// The reference: the scans a checkpoint names, replayed in order through validation, the fit
@@ -256,10 +256,10 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
             ensure!(cycle == 0, "cycle {cycle}: nothing to restore");
         }
 
-        let (config, path, port) = cycle_config(&base, &dir)?;
+        let (config, path, reserved) = cycle_config(&base, &dir)?;
         let mut daemon = ChildProcess::spawn("child_daemon", &path.to_string_lossy())?;
         daemon.expect("ready", WAIT)?;
-        drop(port);
+        drop(reserved);
         let client = Client::builder(&config.map_id)
             .connect(config.zenoh.listen.clone())
             .timeout(WAIT)

@@ -3,7 +3,7 @@
 //! certificate is listed gets answers; a client with a certificate from another CA, and one
 //! signed by the right CA but not listed, get none.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use rangegp_client::{Client, ClientError};
 use rangegp_lab::certs::Authority;
 use rangegp_service::config::Config;
@@ -52,7 +52,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     rogue.leaf(&dir, "forged", "planner-1")?;
 
     let reserved = reserve_loopback_endpoint()?;
-    let port = reserved.endpoint().rsplit(':').next().context("port")?.to_owned();
+    let port = reserved.port().to_string();
     let daemon_config = render(
         "zenoh-rangegpd.json5",
         &dir,

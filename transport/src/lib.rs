@@ -85,6 +85,7 @@ pub fn zenoh_config(
 #[derive(Debug)]
 pub struct ReservedEndpoint {
     _socket: socket2::Socket,
+    port: u16,
     endpoint: String,
 }
 
@@ -92,6 +93,11 @@ impl ReservedEndpoint {
     /// The Zenoh endpoint of the held port, `tcp/127.0.0.1:<port>`.
     pub fn endpoint(&self) -> &str {
         &self.endpoint
+    }
+
+    /// The held port (for configuration files that name it apart from the address).
+    pub fn port(&self) -> u16 {
+        self.port
     }
 }
 
@@ -109,6 +115,7 @@ pub fn reserve_loopback_endpoint() -> std::io::Result<ReservedEndpoint> {
         .port();
     Ok(ReservedEndpoint {
         _socket: socket,
+        port,
         endpoint: format!("tcp/127.0.0.1:{port}"),
     })
 }
@@ -120,12 +127,8 @@ mod tests {
     #[test]
     fn a_reserved_port_takes_a_listener_and_no_second_reservation() {
         let reserved = reserve_loopback_endpoint().expect("reserve");
-        let port: u16 = reserved
-            .endpoint()
-            .rsplit(':')
-            .next()
-            .and_then(|p| p.parse().ok())
-            .expect("a port");
+        let port = reserved.port();
+        assert_eq!(reserved.endpoint(), format!("tcp/127.0.0.1:{port}"));
         let others: Vec<ReservedEndpoint> = (0..64)
             .map(|_| reserve_loopback_endpoint().expect("reserve"))
             .collect();

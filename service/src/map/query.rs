@@ -488,21 +488,15 @@ mod tests {
         assert!(gap > 0.2, "the premise: the back map's data only {gap} m farther");
         let own = map_sd_factor(&snapshot, back, &p);
         let rho = (p.x + 5.0).hypot(p.y);
-        let expected = snapshot
-            .scales
-            .calibrate(Source::Window, rho, &own_estimate)
-            .sd_factor;
+        let own_calibration = snapshot.scales.calibrate(Source::Window, rho, &own_estimate);
+        let expected = own_calibration.sd_factor;
         assert!(
             (own - expected).abs() <= 1e-9 * expected,
             "{own} against {expected}"
         );
         // Its own σ so scaled is its own calibrated height σ there; the nearest map's factor
         // (the front map's, near its data) would give another.
-        let calibrated = snapshot
-            .scales
-            .calibrate(Source::Window, rho, &own_estimate)
-            .var_m2
-            .sqrt();
+        let calibrated = own_calibration.var_m2.sqrt();
         assert!((own_estimate.var.sqrt() * own - calibrated).abs() <= 1e-9 * calibrated);
         let nearest = sd_factor(&snapshot, Source::Window, &p);
         assert!(
