@@ -2,7 +2,8 @@
 //! (craters, fBm at 30°, boulders) with a VLP-16, limits from the full run
 //! (docs/EVALUATION.md "Planner layers"): slope 95 % coverage in [0.90, 0.98], a risk whose Brier
 //! score beats thresholding the mean slope and step, ≥ 50 planned pairs whose paths stay on
-//! traversable ground and within 15 % of the oracle's length.
+//! traversable ground and within 15 % of the oracle's length; and few cells whose slope or step
+//! is wrong by more than 4 σ (the guard against overconfident layers).
 
 use rangegp_lab::eval::layers::{failures, run_layers};
 use rangegp_lab::eval::FamilyOptions;
