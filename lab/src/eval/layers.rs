@@ -59,8 +59,8 @@ pub const MIN_PAIR_DISTANCE_M: f64 = 5.0;
 /// Share of cells whose layers are overconfident, at most: a guard against false confidence
 /// growing, 1.3 × the largest of seeds 0–7 in the full run (0.0232, 2026-11-27).
 pub const MAX_OVERCONFIDENT_SHARE: f64 = 0.03;
-/// The same in the quick form (VLP-16 only, the three hardest terrains): 1.3 × the 0.0311 it
-/// measured (2026-11-27, seed 0).
+/// The same in the quick form (VLP-16 only; craters, fBm H 0.5 30°, boulders): 1.3 × the
+/// 0.0311 it measured (2026-11-27, seed 0).
 pub const QUICK_MAX_OVERCONFIDENT_SHARE: f64 = 0.04;
 /// A cell's layers are overconfident when its slope or step error exceeds this many σ (a
 /// Gaussian error does so once in 16 000 cells) …
