@@ -83,9 +83,9 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
     let back_to = start + 18.0;
     route.extend(leg(half, -1.0).take_while(|&x| x >= back_to));
     let record_at = 2 * n + (20.0 / step).ceil() as usize;
-    // Warm: the second leg done. By then the radius's disc lies wholly on the map (as at the end)
-    // and every learner's history is full; mid-way along that leg RSS was still rising (quick
-    // form, four runs: +4.9 % to +10.1 % from there to the end; +3.4 % to +7.2 % from here).
+    // Warm: the second leg done, the radius's disc wholly on the map (as at the end). Mid-way
+    // along that leg RSS was still rising (quick form, four runs: +4.9 % to +10.1 % from there
+    // to the end; +3.4 % to +7.2 % from here).
     let warm_at = 2 * n;
 
     let state = TempDir::new(&format!("sitemap-{}", std::process::id()))?;
@@ -113,7 +113,7 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
     let probes: Vec<[f64; 2]> = (0..49)
         .map(|k| [start + 1.0 + 0.5 * (k % 7) as f64, -1.5 + 0.5 * (k / 7) as f64])
         .collect();
-    let (mut fresh, mut rss_warm, mut rss_by_scan) = (Vec::new(), 0.0, Vec::new());
+    let (mut fresh, mut rss_by_scan) = (Vec::new(), Vec::new());
     let bar = progress::bar(route.len() as u64, "  sitemap scans");
     let mut rng = Pcg64::seed_from_u64(opts.seed ^ 0x5173);
     for (i, &x) in route.iter().enumerate() {
@@ -131,9 +131,6 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
             s.scans_accepted == accepted && s.aggregate.inserts == accepted
         })?;
         rss_by_scan.push(s.rss_mb.unwrap_or(0.0));
-        if i + 1 == warm_at {
-            rss_warm = s.rss_mb.unwrap_or(0.0);
-        }
         if i + 1 == record_at {
             fresh = start_area(&daemon, &probes);
         }
@@ -153,7 +150,7 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
         quick: opts.quick,
         distance_m,
         scans: end.scans_accepted,
-        rss_warm_mb: rss_warm,
+        rss_warm_mb: rss_by_scan.get(warm_at - 1).copied().unwrap_or(0.0),
         rss_end_mb: end.rss_mb.unwrap_or(0.0),
         rss_by_scan_mb: rss_by_scan,
         revisit_max_abs_diff_m: pairs.iter().copied().fold(0.0, f64::max),
