@@ -8,6 +8,7 @@
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
 //! - [`fleet`]: a Zenoh router with a memory storage of a site's tiles (fleet test and simulation).
+//! - [`heap`]: the live heap bytes of a process whose binary installs the counting allocator.
 
 #![deny(missing_docs)]
 #![forbid(unsafe_code)]
@@ -17,6 +18,7 @@ pub mod certs;
 pub mod demo;
 pub mod eval;
 pub mod fleet;
+pub mod heap;
 pub mod load;
 pub mod plot;
 pub mod replay;

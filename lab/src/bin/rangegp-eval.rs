@@ -4,7 +4,12 @@ use anyhow::Result;
 use clap::Parser;
 use rangegp_lab::eval::{run, EvalOptions, Experiment};
 
+/// Counted, for the site map's memory bar (`rangegp_lab::heap`).
+#[global_allocator]
+static HEAP: rangegp_lab::heap::Counting = rangegp_lab::heap::counting();
+
 fn main() -> Result<()> {
+    rangegp_lab::heap::register(&HEAP);
     let opts = EvalOptions::parse();
     let summary = run(&opts)?;
     // The experiments outside `all` write (and name) their own report instead.

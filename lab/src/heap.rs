@@ -1,0 +1,80 @@
+//! The live heap bytes of a process whose binary installs the counting allocator: the system's
+//! allocator wrapped by `cap`, which counts the bytes allocated and not yet freed.
+//!
+//! A memory bar that compares resident set sizes also measures the allocator: glibc keeps freed
+//! memory in per-thread arenas and hands it back late or never, so RSS rises in steps of several
+//! MiB that say nothing of what the program holds (docs/EVALUATION.md "Site map"). The bytes
+//! allocated and not yet freed are what a leak grows. Only the binaries that need the figure
+//! install it (`rangegp-eval`, the site map's test): the benchmarks time the daemon's own
+//! allocator.
+//!
+//! ```ignore
+//! #[global_allocator]
+//! static HEAP: rangegp_lab::heap::Counting = rangegp_lab::heap::counting();
+//!
+//! fn main() {
+//!     rangegp_lab::heap::register(&HEAP);
+//! }
+//! ```
+
+use cap::Cap;
+use std::alloc::System;
+use std::sync::OnceLock;
+
+/// The system allocator, counted.
+pub type Counting = Cap<System>;
+
+/// A counting allocator with no limit, for a binary's `#[global_allocator]` static.
+pub const fn counting() -> Counting {
+    Cap::new(System, usize::MAX)
+}
+
+static REGISTERED: OnceLock<&'static Counting> = OnceLock::new();
+
+/// Makes `allocator`, the binary's global allocator, the one [`live_bytes`] reads (the first
+/// registration stands).
+pub fn register(allocator: &'static Counting) {
+    let _ = REGISTERED.set(allocator);
+}
+
+/// Bytes allocated and not yet freed by this process, or `None` when its binary registered no
+/// counting allocator.
+pub fn live_bytes() -> Option<usize> {
+    REGISTERED.get().map(|a| a.allocated())
+}
+
+/// [`live_bytes`] in MiB.
+pub fn live_mib() -> Option<f64> {
+    live_bytes().map(|b| b as f64 / (1024.0 * 1024.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[global_allocator]
+    static HEAP: Counting = counting();
+
+    #[test]
+    fn an_allocation_is_counted_until_it_is_freed() {
+        register(&HEAP);
+        // Other tests of this binary allocate concurrently, so the 64 MiB is looked for with a
+        // margin of a quarter either way.
+        let mib = (1u64 << 20) as f64;
+        let now = || live_bytes().map(|b| b as f64).unwrap_or(f64::NAN);
+        let before = now();
+        let block = vec![1u8; 64 << 20];
+        let during = now();
+        assert!(block.iter().all(|&b| b == 1));
+        drop(block);
+        let after = now();
+        assert!(
+            (during - before - 64.0 * mib).abs() < 16.0 * mib,
+            "{before} → {during}"
+        );
+        assert!(
+            (during - after - 64.0 * mib).abs() < 16.0 * mib,
+            "{during} → {after}"
+        );
+    }
+}
