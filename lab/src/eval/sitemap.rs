@@ -109,7 +109,7 @@ pub fn run_sitemap(opts: &SitemapOptions) -> Result<SitemapReport> {
     // Memory is compared at one place seen twice with the same heading: the drive's last scan and
     // the scan of the second leg at the same spot. What the daemon holds follows the route (the
     // aggregate's tiles around the robot, the turn at each end), so any two other scans differ
-    // by up to 10 % with nothing leaking (docs/EVALUATION.md "Site map").
+    // by more than 10 % with nothing leaking (docs/EVALUATION.md "Site map").
     let aligned = n + (route.len() - 1 - 3 * n);
 
     let state = TempDir::new(&format!("sitemap-{}", std::process::id()))?;
