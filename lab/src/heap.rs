@@ -8,12 +8,13 @@
 //! install it (`rangegp-eval`, the site map's test): the benchmarks time the daemon's own
 //! allocator.
 //!
-//! ```ignore
+//! ```
 //! #[global_allocator]
 //! static HEAP: rangegp_lab::heap::Counting = rangegp_lab::heap::counting();
 //!
 //! fn main() {
 //!     rangegp_lab::heap::register(&HEAP);
+//!     assert!(rangegp_lab::heap::live_bytes().is_some_and(|b| b > 0));
 //! }
 //! ```
 

@@ -1,4 +1,4 @@
-//! Accuracy and calibration scores of a set of predictions against ground truth (MATH.md
+//! Accuracy and calibration scores of a set of predictions against ground truth (docs/MATH.md
 //! "Metrics"; seed 003 eqs. 26–27, seed 004 Table I): RMSE, median and maximum absolute error,
 //! NLPD, 68 % / 95 % interval coverage and AUSE.
 

@@ -1,4 +1,5 @@
-//! Cholesky factorisation of covariance matrices with a bounded jitter policy (MATH.md).
+//! Cholesky factorisation of covariance matrices with a bounded jitter policy (docs/MATH.md
+//! "Posterior").
 
 use faer::{linalg::solvers::Llt, Mat, Side};
 use thiserror::Error;

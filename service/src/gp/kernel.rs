@@ -6,7 +6,7 @@ use super::points::Points;
 use super::vector::{self, Profile};
 use serde::{Deserialize, Serialize};
 
-/// Kernel families (MATH.md; seeds 000, 001, 002, 004).
+/// Kernel families (docs/MATH.md "Kernels"; seeds 000, 001, 002, 004).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "family")]
 pub enum KernelFamily {

@@ -1,7 +1,7 @@
-//! Where the kernel sees a ray: the point its prior mean expects it to hit (MATH.md "Kernel
-//! inputs"). Under the constant-range prior that is seed 000's range sphere, so distances are
-//! chordal distances between ray directions; under the flat-ground prior it is the ray's
-//! footprint on the ground plane, capped at the sphere radius near the horizon.
+//! Where the kernel sees a ray: the point its prior mean expects it to hit (docs/MATH.md
+//! "Angles and kernel inputs"). Under the constant-range prior that is seed 000's range sphere,
+//! so distances are chordal distances between ray directions; under the flat-ground prior it is
+//! the ray's footprint on the ground plane, capped at the sphere radius near the horizon.
 //!
 //! A fixed map of the inputs keeps every stationary kernel positive definite. On the ground
 //! plane one degree of inclination near the horizon spans metres while one degree of azimuth

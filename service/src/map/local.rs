@@ -403,7 +403,7 @@ impl LocalRangeMap {
     }
 
     /// Surface height at map (x, y): the first crossing of the vertical line from above
-    /// (MATH.md "From range to 3-D"), or `None` outside what this scan saw.
+    /// (docs/MATH.md "From range to 3-D"), or `None` outside what this scan saw.
     pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
         let (top, span) = self.vertical_fov(x, y)?;
         self.first_crossing_down(x, y, top, span)

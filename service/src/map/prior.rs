@@ -1,4 +1,4 @@
-//! Prior mean functions of the range GP (seed 000 eqs. 7–8, general form in MATH.md).
+//! Prior mean functions of the range GP (seed 000 eqs. 7–8, general form in docs/MATH.md).
 
 use nalgebra::{UnitQuaternion, Vector3};
 
@@ -53,8 +53,9 @@ impl Prior {
 }
 
 impl Prior {
-    /// Scale of the GP residual along `u`, dimensionless (MATH.md "Residual amplitude"): the
-    /// range GP models residual / amplitude, so its kernel is a(u) a(u′) k(u, u′).
+    /// Scale of the GP residual along `u`, dimensionless (docs/MATH.md "Prior means and the
+    /// modelled residual"): the range GP models residual / amplitude, so its kernel is
+    /// a(u) a(u′) k(u, u′).
     ///
     /// Over flat ground a height change dz moves the range by dz / |w_z| = dz · prior / height:
     /// residuals near the horizon are tens of times larger than under the sensor, and one
