@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 
 /// Most the bytes held (live heap less the ledger) may grow from the second leg to the end at
 /// the same place: 2 %, eleven times the largest growth measured (full run +0.16 %, quick
-/// +0.12 % to +0.17 % in five runs; docs/EVALUATION.md "Site map"). A leak of 100 KiB a scan would add 3.6 % to the quick
-/// form and 9 % to the full one.
+/// +0.12 % to +0.17 % in five runs; docs/EVALUATION.md "Site map"). A leak of 100 KiB a scan
+/// would add 3.6 % to the quick form and 9 % to the full one.
 pub const HELD_GROWTH: f64 = 1.02;
 
 /// Settings of the site-map evaluation.
