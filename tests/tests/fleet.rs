@@ -163,7 +163,6 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
             Ok((f.tiles_published > 0 && f.tiles_pending == 0).then_some(()))
         })?;
     }
-    std::thread::sleep(Duration::from_millis(300));
 
     // Probe points: ahead of each robot, and between the lines (seen by two robots).
     let points: Vec<[f64; 2]> = (0..3)
@@ -172,20 +171,22 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
             (0..8).flat_map(move |i| [[-4.0 + i as f64, y + 1.0], [-4.0 + i as f64, y - 7.5]])
         })
         .collect();
-    let tiles = stored(&router, &site_keys)?;
-    for id in &ids {
-        ensure!(tiles.iter().any(|t| &t.robot == id), "no stored tile of {id}");
-    }
-    let want = expected(tiles.clone(), &points)?;
+    // The storage and the site each take the robots' last puts from the router in their own
+    // time: read the storage again until the site answers what its tiles answer.
+    let (tiles, want) = wait_for("the site answering the stored tiles", || {
+        let tiles = stored(&router, &site_keys)?;
+        if !ids.iter().all(|id| tiles.iter().any(|t| &t.robot == id)) {
+            return Ok(None);
+        }
+        let want = expected(tiles.clone(), &points)?;
+        Ok(answers_equal(&site, &points, &want)?.then_some((tiles, want)))
+    })?;
     let answered = want.iter().filter(|w| w.is_some()).count();
     ensure!(
         answered >= points.len() / 2,
         "only {answered} of {} probes answerable",
         points.len()
     );
-    wait_for("the site answering the stored tiles", || {
-        answers_equal(&site, &points, &want).map(|ok| ok.then_some(()))
-    })?;
     println!(
         "site answers {answered} of {} probe points exactly as the stored tiles",
         points.len()
