@@ -155,7 +155,8 @@ pub struct FleetInfo {
     pub tiles_from_storage: u64,
     /// Site: whether a storage answered the start's query.
     pub storage_answered: bool,
-    /// Site: tile messages received live since start.
+    /// Site: tile messages received live since start, counted once the site map answers with
+    /// them.
     pub tiles_received: u64,
     /// Site: tile messages refused (bad bytes, another version or geometry, older than held).
     pub tiles_refused: u64,

@@ -141,6 +141,7 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         robots.push((c, child, client(id, &endpoint)?));
     }
     let mut w = world(11, 6);
+    let mut last_stamp = [0u64; 3];
     for (k, (c, _, robot)) in robots.iter().enumerate() {
         let y = -15.0 + 15.0 * k as f64;
         w.path = Path {
@@ -149,6 +150,7 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         let mut publisher = ScanPublisher::new(&c.scan_service_name(), 1, 4096)?;
         for i in 0..6 {
             let scan = w.scan(i, now_ns());
+            last_stamp[k] = scan.header.stamp_ns;
             let before = robot.status()?.aggregate.inserts;
             publisher.publish(scan.header, &scan.points)?;
             wait_for("the scan fused", || {
@@ -156,12 +158,23 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
             })?;
         }
     }
-    // Every robot's tiles published (none waiting, two periods after its last insert).
-    for (_, _, robot) in &robots {
+    // Every robot's tiles published: the site has a tile of the robot's last scan (so the
+    // robot's tile thread has walked its map since that insert), and the robot has none waiting.
+    for (k, (_, _, robot)) in robots.iter().enumerate() {
         wait_for("the tiles published", || {
-            let f = robot.status()?.fleet;
-            Ok((f.tiles_published > 0 && f.tiles_pending == 0).then_some(()))
+            let site_has_last = site
+                .status()?
+                .fleet
+                .robots
+                .iter()
+                .any(|r| r.robot == ids[k] && r.newest_scan_ns == last_stamp[k]);
+            let waiting = robot.status()?.fleet.tiles_pending;
+            Ok((site_has_last && waiting == 0).then_some(()))
         })?;
+    }
+    let mut published = 0;
+    for (_, _, robot) in &robots {
+        published += robot.status()?.fleet.tiles_published;
     }
 
     // Probe points: ahead of each robot, and between the lines (seen by two robots).
@@ -171,8 +184,12 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
             (0..8).flat_map(move |i| [[-4.0 + i as f64, y + 1.0], [-4.0 + i as f64, y - 7.5]])
         })
         .collect();
-    // The storage and the site each take the robots' last puts from the router in their own
-    // time: read the storage again until the site answers what its tiles answer.
+    // The storage and the site each take the robots' puts from the router in their own time:
+    // wait until the site has taken in every put (its count follows its map), then read the
+    // storage again until the site answers what its tiles answer.
+    wait_for("the site taking in every put", || {
+        Ok((site.status()?.fleet.tiles_received >= published).then_some(()))
+    })?;
     let (tiles, want) = wait_for("the site answering the stored tiles", || {
         let tiles = stored(&router, &site_keys)?;
         if !ids.iter().all(|id| tiles.iter().any(|t| &t.robot == id)) {

@@ -108,12 +108,14 @@ pub fn assemble_loop(
             Err(RecvTimeoutError::Disconnected) => return,
         }
         if !batch.is_empty() {
+            let received = batch.len() as u64;
+            offer(state, &mut site, &settings.site, batch);
+            // Counted once the map answers with them: a status that counts a tile shows it.
             state
                 .fleet
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .tiles_received += batch.len() as u64;
-            offer(state, &mut site, &settings.site, batch);
+                .tiles_received += received;
         }
         if Instant::now() >= next_liveliness {
             next_liveliness = Instant::now() + Duration::from_secs(1);
