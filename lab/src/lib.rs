@@ -7,6 +7,7 @@
 //! - [`scangen`]: simulated scans in the wire layout.
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
+//! - [`pictures`]: a grid's layers and a view's ranges as pictures (`rangegp query ... --png`).
 //! - [`fleet`]: a Zenoh router with a memory storage of a site's tiles (fleet test and simulation).
 //! - [`heap`]: the live heap bytes of a process whose binary installs the counting allocator.
 
@@ -20,6 +21,7 @@ pub mod eval;
 pub mod fleet;
 pub mod heap;
 pub mod load;
+pub mod pictures;
 pub mod plot;
 pub mod replay;
 pub mod scangen;

@@ -6,12 +6,9 @@ use clap::{Args, Parser, Subcommand};
 use rangegp_client::{Client, ScanPublisher};
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
-use rangegp_lab::plot::{Heatmap, Limits, Raster};
 use rangegp_lab::replay::{self, ReplayOptions};
 use rangegp_lab::scangen::{now_ns, ScanGenerator};
-use rangegp_proto::msg::{
-    Camera, GridReply, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewReply, ViewRequest,
-};
+use rangegp_proto::msg::{Camera, GridRequest, Layer, PoseCorrection, Ray, Rigid, Source, ViewRequest};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_sim::ScannerPreset;
 use std::time::{Duration, Instant};
@@ -298,199 +295,6 @@ fn parse_layers(name: &str) -> Result<Vec<Layer>> {
     })
 }
 
-/// Elevation to `file`, σ beside it (`<stem>_sigma.png`), each derived layer as
-/// `<stem>_<layer>.png`; unobserved cells grey.
-fn draw_grid(rep: &GridReply, file: &std::path::Path) -> Result<()> {
-    let elevation = Raster::from_grid(rep, &rep.elevation_m, |z| z);
-    Heatmap::new("Elevation", "elevation (m)").save(file, &elevation)?;
-    let sigma = Raster::from_grid(rep, &rep.variance_m2, f64::sqrt);
-    Heatmap::new("σ of the elevation", "σ (m)")
-        .gradient(colorous::MAGMA)
-        .save(&sigma_beside(file), &sigma)?;
-    let robot = &rep.robot;
-    for layer in &rep.layers {
-        let (title, unit, convert, limits, gradient): (String, &str, fn(f64) -> f64, Limits, _) =
-            match layer.layer {
-                Layer::Slope => (
-                    "Slope over the footprint".into(),
-                    "slope (°)",
-                    f64::to_degrees,
-                    Limits::Robust,
-                    colorous::VIRIDIS,
-                ),
-                Layer::SlopeSigma => (
-                    "σ of the slope".into(),
-                    "σ (°)",
-                    f64::to_degrees,
-                    Limits::Robust,
-                    colorous::MAGMA,
-                ),
-                Layer::Aspect => (
-                    "Aspect (downhill, from +x)".into(),
-                    "aspect (°)",
-                    f64::to_degrees,
-                    Limits::Fixed(-180.0, 180.0),
-                    colorous::SINEBOW,
-                ),
-                Layer::Roughness => (
-                    "Roughness (RMS off the footprint's plane)".into(),
-                    "roughness (m)",
-                    identity,
-                    Limits::Robust,
-                    colorous::VIRIDIS,
-                ),
-                Layer::RoughnessSigma => (
-                    "σ of the roughness".into(),
-                    "σ (m)",
-                    identity,
-                    Limits::Robust,
-                    colorous::MAGMA,
-                ),
-                Layer::Step => (
-                    "Step across the footprint".into(),
-                    "step (m)",
-                    identity,
-                    Limits::Robust,
-                    colorous::VIRIDIS,
-                ),
-                Layer::StepSigma => (
-                    "σ of the step".into(),
-                    "σ (m)",
-                    identity,
-                    Limits::Robust,
-                    colorous::MAGMA,
-                ),
-                Layer::SlopeRisk => (
-                    format!("P(slope > {}°)", robot.max_slope_deg),
-                    "probability",
-                    identity,
-                    Limits::Fixed(0.0, 1.0),
-                    colorous::INFERNO,
-                ),
-                Layer::StepRisk => (
-                    format!("P(step > {} m)", robot.max_step_m),
-                    "probability",
-                    identity,
-                    Limits::Fixed(0.0, 1.0),
-                    colorous::INFERNO,
-                ),
-                Layer::UnknownRisk => (
-                    "Share of the footprint unknown".into(),
-                    "share",
-                    identity,
-                    Limits::Fixed(0.0, 1.0),
-                    colorous::INFERNO,
-                ),
-                Layer::Risk => (
-                    "P(slope or step over the limit)".into(),
-                    "probability",
-                    identity,
-                    Limits::Fixed(0.0, 1.0),
-                    colorous::INFERNO,
-                ),
-                Layer::TraversalCost | Layer::Cost => (
-                    "Traversal cost (risk and unknown)".into(),
-                    "cost",
-                    identity,
-                    Limits::Fixed(0.0, 1.0),
-                    colorous::INFERNO,
-                ),
-            };
-        let raster = Raster::from_grid(rep, &layer.values, convert);
-        Heatmap::new(title, unit)
-            .limits(limits)
-            .gradient(gradient)
-            .save(&beside(file, layer.layer.as_str()), &raster)?;
-    }
-    if !rep.costmap.is_empty() {
-        let cost: Vec<Option<f32>> = rep
-            .costmap
-            .iter()
-            .map(|&c| (c >= 0).then_some(f32::from(c)))
-            .collect();
-        Heatmap::new(
-            format!(
-                "Costmap (100 lethal at risk ≥ {}; grey unknown)",
-                robot.lethal_risk
-            ),
-            "cost (0-100)",
-        )
-        .limits(Limits::Fixed(0.0, 100.0))
-        .gradient(colorous::INFERNO)
-        .save(&beside(file, "cost"), &Raster::from_grid(rep, &cost, identity))?;
-    }
-    Ok(())
-}
-
-/// The value unchanged (a layer drawn in its own unit).
-fn identity(v: f64) -> f64 {
-    v
-}
-
-/// `<stem>_sigma.png` beside `file`: where the σ picture of `file`'s layer goes.
-fn sigma_beside(file: &std::path::Path) -> std::path::PathBuf {
-    beside(file, "sigma")
-}
-
-/// `<stem>_<tag>.png` beside `file`.
-fn beside(file: &std::path::Path, tag: &str) -> std::path::PathBuf {
-    let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("layer");
-    file.with_file_name(format!("{stem}_{tag}.png"))
-}
-
-/// The range image of a lidar view to `file` and its σ beside it, over azimuth and elevation
-/// in degrees (each 0.5° cell takes the nearest pixel).
-fn draw_view(rep: &ViewReply, req: &ViewRequest, file: &std::path::Path) -> Result<()> {
-    let Camera::Lidar {
-        ring_elevations_rad, ..
-    } = &req.camera
-    else {
-        anyhow::bail!("only lidar views are drawn");
-    };
-    let elevations: Vec<f64> = ring_elevations_rad.iter().map(|e| e.to_degrees()).collect();
-    let (lo, hi) = elevations
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &e| {
-            (a.min(e), b.max(e))
-        });
-    let pixel = |az: f64, el: f64, layer: &[Option<f32>]| {
-        let row = elevations
-            .iter()
-            .enumerate()
-            .min_by(|a, b| (a.1 - el).abs().total_cmp(&(b.1 - el).abs()))?
-            .0;
-        let col = ((az / 360.0 * f64::from(rep.cols)).round() as usize) % rep.cols.max(1) as usize;
-        layer[row * rep.cols as usize + col].map(f64::from)
-    };
-    let res = 0.5;
-    let layers = [
-        (
-            file.to_path_buf(),
-            "Range as the sensor would see the map",
-            "range (m)",
-            &rep.range_m,
-            colorous::VIRIDIS,
-        ),
-        (
-            sigma_beside(file),
-            "σ of the range",
-            "σ (m)",
-            &rep.sigma_m,
-            colorous::MAGMA,
-        ),
-    ];
-    for (path, title, unit, layer, gradient) in layers {
-        let raster = Raster::from_fn((0.0, lo - res), (360.0, hi + res), res, |az, el| {
-            pixel(az, el, layer)
-        });
-        Heatmap::new(title, unit)
-            .axes("azimuth (°, left of ahead)", "elevation (°)")
-            .gradient(gradient)
-            .save(&path, &raster)?;
-    }
-    Ok(())
-}
-
 fn main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -599,7 +403,7 @@ fn main() -> Result<()> {
                 robot: None,
             })?;
             if let Some(file) = &png {
-                draw_grid(&rep, file)?;
+                rangegp_lab::pictures::grid(&rep, file)?;
             }
             if json {
                 println!("{}", serde_json::to_string(&rep)?);
@@ -642,7 +446,7 @@ fn main() -> Result<()> {
             };
             let rep = connection.open()?.view(&req)?;
             if let Some(file) = &png {
-                draw_view(&rep, &req, file)?;
+                rangegp_lab::pictures::view(&rep, &req, file)?;
             }
             if json {
                 println!("{}", serde_json::to_string(&rep)?);
