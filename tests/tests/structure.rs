@@ -65,12 +65,37 @@ fn paths_after(code: &str, prefix: &str) -> Vec<Vec<String>> {
     out
 }
 
+/// Whether `path` is a module of tests in a file of its own (`tests.rs`, which its parent module
+/// must declare as `#[cfg(test)] mod tests;`: then it is test code, as an inline `mod tests` is).
+fn is_test_file(path: &Path) -> bool {
+    if path.file_name().is_none_or(|f| f != "tests.rs") {
+        return false;
+    }
+    let dir = path.parent().expect("a file has a directory");
+    let parent = ["mod.rs", "lib.rs"]
+        .iter()
+        .map(|f| dir.join(f))
+        .find(|p| p.exists())
+        .unwrap_or_else(|| dir.with_extension("rs"));
+    let declared = std::fs::read_to_string(&parent).unwrap_or_default();
+    assert!(
+        declared.contains("#[cfg(test)]\nmod tests;"),
+        "{} is not declared as #[cfg(test)] mod tests; in {}",
+        path.display(),
+        parent.display()
+    );
+    true
+}
+
 /// The sibling edges (parent, from child, to child) of a crate's non-test code.
 fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
     let files = modules(src);
     let known: BTreeSet<Module> = files.iter().map(|(m, _)| m.clone()).collect();
     let mut edges = BTreeSet::new();
     for (module, path) in &files {
+        if is_test_file(path) {
+            continue;
+        }
         let text = std::fs::read_to_string(path).expect("read");
         // Non-test code without comments (a doc link is not a dependency).
         let code: String = text
