@@ -19,7 +19,6 @@ use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
-use rangegp_service::map::local::normal_quantile;
 use rangegp_service::map::query;
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
@@ -131,7 +130,7 @@ fn reliability(samples: &[Sample]) -> Vec<[f64; 2]> {
     RELIABILITY_LEVELS
         .iter()
         .map(|&level| {
-            let k = normal_quantile(0.5 * (1.0 + level));
+            let k = distrs::Normal::ppf(0.5 * (1.0 + level), 0.0, 1.0);
             let inside = z.iter().filter(|&&v| v <= k).count();
             [level, inside as f64 / z.len().max(1) as f64]
         })
@@ -517,7 +516,7 @@ mod tests {
     fn a_gaussian_sample_has_a_diagonal_reliability_curve_and_a_too_narrow_sigma_falls_below_it() {
         let n = 4000;
         let errors: Vec<f64> = (0..n)
-            .map(|i| normal_quantile((i as f64 + 0.5) / n as f64))
+            .map(|i| distrs::Normal::ppf((i as f64 + 0.5) / n as f64, 0.0, 1.0))
             .collect();
         let sample = |sd: f64| -> Vec<Sample> {
             errors
@@ -535,7 +534,6 @@ mod tests {
         for [level, share] in reliability(&sample(0.5)) {
             assert!(share < level - 0.01, "level {level}: {share}");
         }
-        assert!((normal_quantile(0.975) - 1.959964).abs() < 1e-5);
     }
 
     fn cell(sensor: &str, band: &str, source: &str, n: usize, share: f64) -> Cell {

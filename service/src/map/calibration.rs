@@ -620,7 +620,7 @@ mod tests {
         (0..n)
             .map(|i| {
                 let u = (i as f64 + 0.5) / n as f64;
-                let z = crate::map::local::normal_quantile(u);
+                let z = distrs::Normal::ppf(u, 0.0, 1.0);
                 Residual {
                     r2: (sd * z).powi(2),
                     var,

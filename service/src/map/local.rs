@@ -578,7 +578,7 @@ impl LocalRangeMap {
                 max_range,
             );
             let var = (f * f * self.root_variance(gap, &point(t), root)?).max(band);
-            let hit_probability = normal_cdf((max_range - t) / var.sqrt().max(1e-12));
+            let hit_probability = distrs::Normal::cdf((max_range - t) / var.sqrt().max(1e-12), 0.0, 1.0);
             let (inc, az, _) = self.look_at(&point(t))?;
             return Some(RayEstimate {
                 range: Some(t),
@@ -604,7 +604,7 @@ impl LocalRangeMap {
         Some(RayEstimate {
             range: None,
             range_var: None,
-            hit_probability: normal_cdf(g / sd.max(1e-12)),
+            hit_probability: distrs::Normal::cdf(g / sd.max(1e-12), 0.0, 1.0),
             provenance: Provenance::None,
         })
     }
@@ -730,35 +730,6 @@ fn unit(inclination: f64, azimuth: f64) -> Vector3<f64> {
     Vector3::new(x, y, z)
 }
 
-/// Φ⁻¹(p) for p in (0, 1): bisection on [`normal_cdf`] to 1e-12 (as accurate as that CDF).
-pub fn normal_quantile(p: f64) -> f64 {
-    let (mut lo, mut hi) = (-40.0, 40.0);
-    while hi - lo > 1e-12 {
-        let mid = 0.5 * (lo + hi);
-        if normal_cdf(mid) < p {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
-}
-
-/// Standard normal CDF (Abramowitz–Stegun 7.1.26 erf, |error| < 1.5e-7).
-pub fn normal_cdf(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.327_591_1 * z);
-    let poly = t
-        * (0.254_829_592
-            + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    let erf = 1.0 - poly * (-z * z).exp();
-    if x >= 0.0 {
-        0.5 * (1.0 + erf)
-    } else {
-        0.5 * (1.0 - erf)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -859,12 +830,5 @@ mod tests {
         }
         // Oblique view: most of the range uncertainty is horizontal (seed 000's finding).
         assert!(sigma[2] < sigma[0].hypot(sigma[1]));
-    }
-
-    #[test]
-    fn normal_cdf_known_values() {
-        assert!((normal_cdf(0.0) - 0.5).abs() < 1e-9);
-        assert!((normal_cdf(1.959_964) - 0.975).abs() < 1e-6);
-        assert!((normal_cdf(-1.0) - 0.158_655_25).abs() < 1e-6);
     }
 }

@@ -4,7 +4,7 @@
 use super::WorldAggregate;
 use crate::map::aggregate::Aggregate;
 use crate::map::elevation_gp::ElevationGp;
-use crate::map::local::{normal_cdf, provenance_of, HeightEstimate, RayEstimate};
+use crate::map::local::{provenance_of, HeightEstimate, RayEstimate};
 use crate::map::root;
 use nalgebra::Vector3;
 use rangegp_proto::msg::Provenance;
@@ -91,7 +91,7 @@ impl WorldAggregate {
             return Some(RayEstimate {
                 range: Some(root.t),
                 range_var: Some(var),
-                hit_probability: normal_cdf((max_range - root.t) / var.sqrt().max(1e-12)),
+                hit_probability: distrs::Normal::cdf((max_range - root.t) / var.sqrt().max(1e-12), 0.0, 1.0),
                 provenance,
             });
         }
@@ -106,7 +106,7 @@ impl WorldAggregate {
         Some(RayEstimate {
             range: None,
             range_var: None,
-            hit_probability: normal_cdf(closest / sd_factor(&at)),
+            hit_probability: distrs::Normal::cdf(closest / sd_factor(&at), 0.0, 1.0),
             provenance: Provenance::None,
         })
     }
