@@ -1,16 +1,21 @@
 //! The local range map of one scan: range as a GP over (inclination, azimuth) (seed 000 §III-A).
 
+mod surface;
+mod training;
+
+pub use training::{embedding_of, hyper_sample, HyperSample};
+use training::{index_of, prior_of, training_rays, training_returns};
+
 use super::data_index::DataIndex;
 use super::embedding::Embedding;
 use super::fov::FieldOfView;
 use super::prior::Prior;
 use super::root;
-use super::tiles::{TiledGp, Tiling, TrainingRay};
+use super::tiles::{TiledGp, Tiling};
 use crate::gp::{sphere, CholeskyError, JitterPolicy, Kernel};
 use crate::scan::ScanInput;
 use nalgebra::{Isometry3, Vector3};
 use rangegp_proto::msg::Provenance;
-use std::f64::consts::FRAC_PI_2;
 use std::sync::Arc;
 use thiserror::Error;
 
@@ -43,25 +48,6 @@ pub enum RangeTarget {
 
 /// Smallest inverse range a prediction is clamped to, 1/m (a 1 km ray).
 const MIN_INVERSE_RANGE: f64 = 1e-3;
-
-/// Largest angular step, radians, when sampling a vertical line for the field of view.
-const FOV_STEP_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
-
-/// Bisections of each end of the field of view on a vertical line (in height: the bracket of
-/// one angular step, at most 2°, over 2¹⁰: under 0.4 mm at 10 m).
-const FOV_BISECTIONS: usize = 10;
-
-/// The first-crossing search down the field of view's part of a vertical line steps at least
-/// 1 / ELEVATION_SAMPLES of it ...
-const ELEVATION_SAMPLES: usize = 24;
-
-/// ... and at most 1 / ELEVATION_SAMPLES_MIN of it or [`ELEVATION_STEP_M`], whichever is longer.
-const ELEVATION_SAMPLES_MIN: usize = 4;
-
-/// The longest step of that search on a short stretch, metres: a long stretch's quarter steps
-/// over as much; a short one (near the sensor, where the field of view ends above the ground)
-/// need not be sampled finer than the rest.
-const ELEVATION_STEP_M: f64 = 0.25;
 
 impl RangeTarget {
     /// The modelled value of range `r`.
@@ -204,11 +190,6 @@ pub struct LocalRangeMap {
 fn tilt_of(pose: &Isometry3<f64>) -> f64 {
     (pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos()
 }
-
-/// Inclination step of the shadow test's range derivative, radians (0.1°).
-const SHADOW_PROBE_RAD: f64 = 1.745e-3;
-/// A crossing seen at a grazing angle below this fraction of flat ground's is a shadow edge.
-pub const SHADOW_GRAZING_FRACTION: f64 = 0.25;
 
 impl LocalRangeMap {
     /// Fits the range GP of `scan` (seed 000 eqs. 9–10 with a heteroscedastic diagonal).
@@ -400,327 +381,6 @@ impl LocalRangeMap {
         let (inc, az, _) = self.look_at(p)?;
         let (_, var_r) = self.predict_range(inc, az);
         root::root_variance(gap, root, var_r)
-    }
-
-    /// Surface height at map (x, y): the first crossing of the vertical line from above
-    /// (docs/MATH.md "From range to 3-D"), or `None` outside what this scan saw.
-    pub fn elevation(&self, x: f64, y: f64) -> Option<HeightEstimate> {
-        let (top, span) = self.vertical_fov(x, y)?;
-        self.first_crossing_down(x, y, top, span)
-    }
-
-    fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {
-        let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
-        // A point `g` short of the surface along its ray (or behind it, for a negative `g`) lies
-        // `g · sin(depression)` above where a flat surface below would cross the line: the
-        // trace's estimate of the distance left; a ray looking up says nothing of the ground
-        // below.
-        let s = self.sensor_position();
-        let rho2 = (x - s.x).powi(2) + (y - s.y).powi(2);
-        let ahead = |t: f64, g: f64| {
-            let below = s.z - (top - t);
-            if below <= 0.0 {
-                return f64::INFINITY;
-            }
-            -g * below / (below * below + rho2).sqrt()
-        };
-        let steps = (
-            (span / ELEVATION_SAMPLES_MIN as f64).max(ELEVATION_STEP_M),
-            span / ELEVATION_SAMPLES as f64,
-        );
-        let root = root::first_crossing_traced(gap, (0.0, span), (steps.1, steps.0), ahead)?;
-        let p = Vector3::new(x, y, top - root.t);
-        let (inc, az, dist) = self.look_at(&p)?;
-        let grazing = self.grazing((inc, az, dist), root.gap());
-        if grazing < SHADOW_GRAZING_FRACTION {
-            return None;
-        }
-        // One range variance at the crossing serves the height's and the point's σ.
-        let (_, var_r) = self.predict_range(inc, az);
-        let var = root::root_variance(gap, root, var_r)?;
-        let w = self.pose.rotation * unit(inc, az);
-        let sd_r = var_r.sqrt();
-        Some(HeightEstimate {
-            z: top - root.t,
-            var,
-            grazing,
-            point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
-            data_m: self.data.distance(x, y),
-        })
-    }
-
-    /// How much training data stands behind this map's answer at map point `p` (graded only
-    /// for the answer a query returns: the nearest-datum search is O(n) per covering expert).
-    pub fn provenance(&self, p: &Vector3<f64>) -> Provenance {
-        self.look_at(p)
-            .map_or(Provenance::None, |(inc, az, _)| self.provenance_at(inc, az))
-    }
-
-    /// How much training data stands behind the prediction along (θ, φ).
-    fn provenance_at(&self, inclination: f64, azimuth: f64) -> Provenance {
-        provenance_of(self.gp.nearest_datum(inclination, azimuth), self.length_scale)
-    }
-
-    /// The angle at which the rays meet the predicted surface at `p` (given as its sensor-frame
-    /// inclination, azimuth and distance), as a fraction of the angle
-    /// flat ground would be seen at from the same distance (infinite where it cannot be told: a
-    /// surface receding slower than flat ground, or a prior that does not know the ground).
-    /// Below [`SHADOW_GRAZING_FRACTION`] the crossing is the edge of a shadow rather than ground
-    /// this scan saw: behind a ridge the vertical line's first crossing is where the rays start
-    /// to pass over the ridge; the range jumps there (the map smooths the jump into a steep
-    /// ramp), and the crossing's height is the shadow line, not the ground. Only under the
-    /// flat-ground prior (it knows the sensor height). `gap_at_p`, the gap already evaluated
-    /// at `p`, gives the mean range there, and the rate takes one more evaluation instead of two.
-    fn grazing(&self, (inc, az, dist): (f64, f64, f64), gap_at_p: Option<f64>) -> f64 {
-        let Prior::FlatGround { height_m, .. } = self.prior else {
-            return f64::INFINITY;
-        };
-        // Inclination is measured from the sensor's zenith: a smaller one looks farther out.
-        let step = SHADOW_PROBE_RAD;
-        let rate = match gap_at_p {
-            Some(g) => (dist - g - self.mean_range(inc + step, az)) / step,
-            None => (self.mean_range(inc - step, az) - self.mean_range(inc + step, az)) / (2.0 * step),
-        };
-        let flat = (height_m / dist).clamp(-1.0, 1.0).asin();
-        if rate <= 0.0 || flat <= 0.0 {
-            return f64::INFINITY;
-        }
-        dist.atan2(rate) / flat
-    }
-
-    /// The part of the vertical line at (x, y) inside the observed field of view, as its top z
-    /// and length (angles only: cheap), or `None` when it misses the field of view.
-    ///
-    /// Seen from the sensor, the line sweeps half a great circle, elevation ψ ↦ z = ρ tan ψ.
-    /// The sensor frame's inclination differs from π/2 − ψ by at most the sensor's tilt, which
-    /// bounds the ψ that can lie in the band; that arc is sampled at steps finer than the band
-    /// (a great-circle arc crossing the band spans at least its width, so none is stepped over)
-    /// and both ends are bisected.
-    fn vertical_fov(&self, x: f64, y: f64) -> Option<(f64, f64)> {
-        let s = self.sensor_position();
-        let rho = (x - s.x).hypot(y - s.y);
-        if rho >= self.max_range || rho < 1e-6 {
-            return None;
-        }
-        let tilt = self.tilt;
-        let (band_lo, band_hi) = self.fov.inclination();
-        let half = (self.max_range * self.max_range - rho * rho).sqrt();
-        let reach = half.atan2(rho);
-        let psi_top = (FRAC_PI_2 - band_lo + tilt).min(reach);
-        let psi_bottom = (FRAC_PI_2 - band_hi - tilt).max(-reach);
-        if psi_top <= psi_bottom {
-            return None;
-        }
-        let z_at = |psi: f64| s.z + rho * psi.tan();
-        // The line in the sensor frame, a + z e: what `sensor_vector` tests, without a rotation
-        // per point.
-        let a = self
-            .pose
-            .rotation
-            .inverse_transform_vector(&Vector3::new(x - s.x, y - s.y, -s.z));
-        let e = self.pose.rotation.inverse_transform_vector(&Vector3::z());
-        let sees_z = |z: f64| self.in_view(a + z * e).is_some();
-        let sees = |psi: f64| sees_z(z_at(psi));
-        let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
-        let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;
-        let psi = |k: usize| psi_top - (psi_top - psi_bottom) * k as f64 / n as f64;
-        let first = (0..=n).find(|&k| sees(psi(k)))?;
-        let last = (first..=n).rev().find(|&k| sees(psi(k)))?;
-        // Each end bisected in height (z is monotone in ψ: no tangent per step).
-        let edge = |inside: f64, outside: f64| {
-            let (mut a, mut b) = (z_at(inside), z_at(outside));
-            for _ in 0..FOV_BISECTIONS {
-                let m = 0.5 * (a + b);
-                if sees_z(m) {
-                    a = m;
-                } else {
-                    b = m;
-                }
-            }
-            a
-        };
-        let top = if first == 0 {
-            z_at(psi(0))
-        } else {
-            edge(psi(first), psi(first - 1))
-        };
-        let bottom = if last == n {
-            z_at(psi(n))
-        } else {
-            edge(psi(last), psi(last + 1))
-        };
-        (top > bottom).then_some((top, top - bottom))
-    }
-
-    /// Casts a map-frame ray (unit `dir`) through this map's surface up to `max_range`.
-    /// `None` when no point of the ray lies in this scan's field of view.
-    pub fn cast(
-        &self,
-        origin: Vector3<f64>,
-        dir: Vector3<f64>,
-        max_range: f64,
-        sd_factor: &dyn Fn(&Vector3<f64>) -> f64,
-    ) -> Option<RayEstimate> {
-        let point = |t: f64| origin + dir * t;
-        let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
-        let gap = |t: f64| self.gap(&point(t));
-        if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
-            let t = root.t;
-            let (inc, az, _) = self.look_at(&point(t))?;
-            let (_, var_r) = self.predict_range(inc, az);
-            let f = sd_factor(&point(t));
-            let band = root::band_variance(
-                gap,
-                root,
-                f * var_r.sqrt(),
-                max_range / samples as f64 / 4.0,
-                0.0,
-                max_range,
-            );
-            let var = (f * f * self.root_variance(gap, &point(t), root)?).max(band);
-            let hit_probability = distrs::Normal::cdf((max_range - t) / var.sqrt().max(1e-12), 0.0, 1.0);
-            let (inc, az, _) = self.look_at(&point(t))?;
-            return Some(RayEstimate {
-                range: Some(t),
-                range_var: Some(var),
-                hit_probability,
-                provenance: self.provenance_at(inc, az),
-            });
-        }
-        // No crossing: the hit probability is set by the closest approach to the surface.
-        let mut closest: Option<(f64, f64, f64, Vector3<f64>)> = None;
-        for k in 0..=samples {
-            let p = point(max_range * k as f64 / samples as f64);
-            if let Some((inc, az, dist)) = self.look_at(&p) {
-                let g = dist - self.mean_range(inc, az);
-                if closest.is_none_or(|c| g > c.0) {
-                    closest = Some((g, inc, az, p));
-                }
-            }
-        }
-        let (g, inc, az, p) = closest?;
-        let (_, var_r) = self.predict_range(inc, az);
-        let sd = sd_factor(&p) * var_r.sqrt();
-        Some(RayEstimate {
-            range: None,
-            range_var: None,
-            hit_probability: distrs::Normal::cdf(g / sd.max(1e-12), 0.0, 1.0),
-            provenance: Provenance::None,
-        })
-    }
-}
-
-/// The kernel-input map of `scan`'s local map (its prior's footprints).
-pub fn embedding_of(scan: &ScanInput, params: &MapParams) -> Embedding {
-    Embedding::new(
-        prior_of(scan, params),
-        params.sphere_radius_m.unwrap_or(scan.max_range_m),
-    )
-}
-
-/// The prior mean a scan is fitted with.
-fn prior_of(scan: &ScanInput, params: &MapParams) -> Prior {
-    match params.prior {
-        PriorKind::FlatGround { sensor_height_m } => {
-            Prior::flat_ground(sensor_height_m, &scan.pose.rotation, scan.max_range_m)
-        }
-        PriorKind::ConstantRange { range_m } => Prior::ConstantRange { range_m },
-    }
-}
-
-/// The even stride that keeps at most `cap` of `scan`'s rays.
-fn training_stride(scan: &ScanInput, cap: usize) -> usize {
-    scan.rays.len().div_ceil(cap.max(1)).max(1)
-}
-
-/// The sensor-frame points of the rays [`training_rays`] takes (the same stride).
-fn training_returns(scan: &ScanInput, cap: usize) -> impl Iterator<Item = Vector3<f64>> + '_ {
-    scan.rays
-        .iter()
-        .step_by(training_stride(scan, cap))
-        .map(|r| unit(r.inclination, r.azimuth) * r.range)
-}
-
-/// The map-frame ground index of sensor-frame `returns` seen from `pose`.
-fn index_of(returns: &[[f32; 3]], pose: &Isometry3<f64>) -> DataIndex {
-    let ground: Vec<[f64; 3]> = returns
-        .iter()
-        .map(|p| {
-            let m = pose * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            [m.x, m.y, m.z]
-        })
-        .collect();
-    DataIndex::new(&ground)
-}
-
-/// At most `cap` returned rays of `scan` (an even stride) as training rays: residuals from the
-/// prior divided by the prior's amplitude, noise variances divided by its square.
-fn training_rays(scan: &ScanInput, prior: &Prior, params: &MapParams, cap: usize) -> Vec<TrainingRay> {
-    scan.rays
-        .iter()
-        .step_by(training_stride(scan, cap))
-        .map(|r| {
-            let u = unit(r.inclination, r.azimuth);
-            let a = prior.amplitude(&u);
-            let t = params.target;
-            // d value / d r at the measurement, for the noise through the transform.
-            let slope = 1.0 / t.back(t.of(r.range)).1;
-            TrainingRay {
-                inclination: r.inclination,
-                azimuth: r.azimuth,
-                residual: (t.of(r.range) - t.of(prior.range(&u))) / a,
-                noise_var: (scan.range_sd(r.range).powi(2) + params.nugget_m2) * (slope / a).powi(2),
-            }
-        })
-        .collect()
-}
-
-/// A scan's rays as a hyperparameter-learning sample: the `cap` rays nearest (on the sphere)
-/// to a centre ray that moves with the scan's sequence number, as points on the range sphere,
-/// residuals from the prior mean, and noise variances. A compact patch keeps the scan's own ray
-/// density, so the length scale is not biased by thinning (an even stride over the scan is).
-pub fn hyper_sample(scan: &ScanInput, params: &MapParams, cap: usize) -> HyperSample {
-    let prior = prior_of(scan, params);
-    let embedding = embedding_of(scan, params);
-    let mut rays = training_rays(scan, &prior, params, usize::MAX);
-    if rays.len() > cap {
-        let centre = rays[(scan.sequence as usize).wrapping_mul(2_654_435_761) % rays.len()];
-        let c = sphere::to_sphere(centre.inclination, centre.azimuth, 1.0);
-        let dist = |r: &TrainingRay| {
-            crate::gp::kernel::distance(&c, &sphere::to_sphere(r.inclination, r.azimuth, 1.0))
-        };
-        rays.select_nth_unstable_by(cap - 1, |a, b| dist(a).total_cmp(&dist(b)));
-        rays.truncate(cap);
-    }
-    HyperSample {
-        inputs: rays
-            .iter()
-            .map(|r| embedding.point(r.inclination, r.azimuth))
-            .collect(),
-        targets: rays.iter().map(|r| r.residual).collect(),
-        noise_var: rays.iter().map(|r| r.noise_var).collect(),
-    }
-}
-
-/// Training data for one hyperparameter update, owned so it can cross threads.
-#[derive(Debug, Clone, PartialEq)]
-pub struct HyperSample {
-    /// Points on the range sphere.
-    pub inputs: Vec<[f64; 3]>,
-    /// Range residuals from the prior mean, metres.
-    pub targets: Vec<f64>,
-    /// Noise variances, m².
-    pub noise_var: Vec<f64>,
-}
-
-impl HyperSample {
-    /// Borrowed view for the likelihood code.
-    pub fn as_training_set(&self) -> crate::gp::likelihood::TrainingSet<'_> {
-        crate::gp::likelihood::TrainingSet {
-            inputs: &self.inputs,
-            targets: &self.targets,
-            noise_var: &self.noise_var,
-        }
     }
 }
 
