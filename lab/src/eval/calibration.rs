@@ -120,6 +120,23 @@ pub fn quick_regressions(report: &CalibrationReport) -> Vec<String> {
     out
 }
 
+/// The factor on σ that gives `samples` a 95 % coverage of 0.95, and whether some one factor
+/// puts both coverages in their bounds ([`COV68`], [`COV95`]): from the quantiles of |error| / σ,
+/// a factor f holds cov68 in bounds for f between its 60th and 76th percentiles, and cov95 for
+/// 1.96 f between its 92nd and 98th.
+fn one_factor(samples: &[Sample]) -> (f64, bool) {
+    let mut z: Vec<f64> = samples.iter().map(|s| (s.truth - s.mean).abs() / s.sd).collect();
+    if z.is_empty() {
+        return (f64::NAN, false);
+    }
+    z.sort_by(f64::total_cmp);
+    let q = |p: f64| z[((p * z.len() as f64).ceil() as usize).clamp(1, z.len()) - 1];
+    let k = 1.96;
+    let lo = q(COV68.0).max(q(COV95.0) / k);
+    let hi = q(COV68.1).min(q(COV95.1) / k);
+    (q(0.95) / k, lo <= hi)
+}
+
 /// Probability levels of the central intervals in each cell's reliability curve.
 pub const RELIABILITY_LEVELS: [f64; 11] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99];
 
@@ -234,6 +251,11 @@ pub struct Cell {
     /// The reliability curve: for each central interval of [`RELIABILITY_LEVELS`], the share of
     /// errors inside it (calibrated: equal to the level).
     pub reliability: Vec<[f64; 2]>,
+    /// The factor on every σ of the cell that would give it cov95 = 0.95 (above 1: σ too narrow).
+    pub sd_factor95: f64,
+    /// Whether one factor on every σ of the cell would put both cov68 and cov95 in their bounds
+    /// (false: the errors' shape, not σ's level, keeps it out).
+    pub one_factor_reaches: bool,
 }
 
 impl Cell {
@@ -255,6 +277,8 @@ impl Cell {
             nlpd: f64::NAN,
             ause: f64::NAN,
             reliability: Vec::new(),
+            sd_factor95: f64::NAN,
+            one_factor_reaches: false,
         }
     }
 }
@@ -306,6 +330,7 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
                     // Every point refused (right for occluded ground): a cell of refusals.
                     cells.push(Cell::refusals(&spec.name, preset.name, band, source, bin.refused));
                 } else if let Some(s) = Scores::of(&bin.samples) {
+                    let (sd_factor95, one_factor_reaches) = one_factor(&bin.samples);
                     cells.push(Cell {
                         terrain: spec.name.clone(),
                         sensor: preset.name.to_owned(),
@@ -322,6 +347,8 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
                         nlpd: s.nlpd,
                         ause: s.ause,
                         reliability: reliability(&bin.samples),
+                        sd_factor95,
+                        one_factor_reaches,
                     });
                 }
             }
@@ -506,6 +533,16 @@ pub fn print_calibration(report: &CalibrationReport) {
             c.nlpd
         );
     }
+    let judged: Vec<&Cell> = report.cells.iter().filter(|c| c.n >= MIN_CELL_N).collect();
+    let within =
+        |c: &&&Cell| (COV95.0..=COV95.1).contains(&c.cov95) && (COV68.0..=COV68.1).contains(&c.cov68);
+    println!(
+        "cells with n ≥ {MIN_CELL_N}: {}; in both bounds: {}; that one factor on σ each would bring \
+         into both: {} (`sd_factor95` and `one_factor_reaches` in calibration.json)",
+        judged.len(),
+        judged.iter().filter(within).count(),
+        judged.iter().filter(|c| c.one_factor_reaches).count()
+    );
 }
 
 #[cfg(test)]
@@ -534,6 +571,35 @@ mod tests {
         for [level, share] in reliability(&sample(0.5)) {
             assert!(share < level - 0.01, "level {level}: {share}");
         }
+    }
+
+    #[test]
+    fn one_factor_finds_a_sigma_half_too_narrow_and_cannot_mend_heavy_tails() {
+        let n = 4000;
+        let unit: Vec<f64> = (0..n)
+            .map(|i| distrs::Normal::ppf((i as f64 + 0.5) / n as f64, 0.0, 1.0))
+            .collect();
+        let samples = |errors: &[f64], sd: f64| -> Vec<Sample> {
+            errors
+                .iter()
+                .map(|&e| Sample {
+                    mean: 0.0,
+                    sd,
+                    truth: e,
+                })
+                .collect()
+        };
+        let (factor, reaches) = one_factor(&samples(&unit, 0.5));
+        assert!((factor - 2.0).abs() < 0.02, "factor {factor}");
+        assert!(reaches);
+        // Nine errors in ten at a tenth of the rest's scale: no one σ covers 68 % and 95 % alike.
+        let mixed: Vec<f64> = unit
+            .iter()
+            .enumerate()
+            .map(|(i, &e)| if i % 10 == 0 { 10.0 * e } else { e })
+            .collect();
+        assert!(!one_factor(&samples(&mixed, 1.0)).1);
+        assert!(one_factor(&[]).0.is_nan());
     }
 
     fn cell(sensor: &str, band: &str, source: &str, n: usize, share: f64) -> Cell {
