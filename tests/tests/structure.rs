@@ -65,26 +65,32 @@ fn paths_after(code: &str, prefix: &str) -> Vec<Vec<String>> {
     out
 }
 
-/// Whether `path` is a module of tests in a file of its own (`tests.rs`, which its parent module
-/// must declare as `#[cfg(test)] mod tests;`: then it is test code, as an inline `mod tests` is).
-fn is_test_file(path: &Path) -> bool {
-    if path.file_name().is_none_or(|f| f != "tests.rs") {
+/// Whether the module in `path` is declared for tests only (`#[cfg(test)]` on the line before
+/// its `mod` in its parent): then all of it is test code, as what follows `#[cfg(test)]` in a
+/// file is.
+fn test_only(path: &Path) -> bool {
+    let own = if path.file_name().is_some_and(|f| f == "mod.rs") {
+        path.parent()
+    } else {
+        Some(path)
+    };
+    let Some((name, dir)) = own.and_then(|p| Some((p.file_stem()?.to_str()?, p.parent()?))) else {
+        return false;
+    };
+    if name == "lib" {
         return false;
     }
-    let dir = path.parent().expect("a file has a directory");
     let parent = ["mod.rs", "lib.rs"]
         .iter()
         .map(|f| dir.join(f))
         .find(|p| p.exists())
         .unwrap_or_else(|| dir.with_extension("rs"));
-    let declared = std::fs::read_to_string(&parent).unwrap_or_default();
-    assert!(
-        declared.contains("#[cfg(test)]\nmod tests;"),
-        "{} is not declared as #[cfg(test)] mod tests; in {}",
-        path.display(),
-        parent.display()
-    );
-    true
+    let text = std::fs::read_to_string(parent).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().map(str::trim).collect();
+    let declaration = format!("mod {name};");
+    lines
+        .windows(2)
+        .any(|w| w[0] == "#[cfg(test)]" && w[1].ends_with(&declaration))
 }
 
 /// The sibling edges (parent, from child, to child) of a crate's non-test code.
@@ -93,7 +99,7 @@ fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
     let known: BTreeSet<Module> = files.iter().map(|(m, _)| m.clone()).collect();
     let mut edges = BTreeSet::new();
     for (module, path) in &files {
-        if is_test_file(path) {
+        if test_only(path) {
             continue;
         }
         let text = std::fs::read_to_string(path).expect("read");
@@ -219,6 +225,31 @@ fn no_module_of_any_crate_imports_from_a_module_that_depends_on_it() {
             );
         }
     }
+}
+
+#[test]
+fn a_module_declared_for_tests_only_makes_no_cycle() {
+    let dir = std::env::temp_dir().join(format!("rangegp-structure-tests-{}", std::process::id()));
+    let src = dir.join("src");
+    std::fs::create_dir_all(src.join("b")).expect("dirs");
+    std::fs::write(
+        src.join("lib.rs"),
+        "pub mod a;\npub mod b;\n#[cfg(test)]\nmod support;\n",
+    )
+    .expect("lib");
+    std::fs::write(src.join("a.rs"), "use crate::b::Thing;\n").expect("a");
+    std::fs::write(
+        src.join("b/mod.rs"),
+        "pub struct Thing;\n#[cfg(test)]\nmod tests;\n",
+    )
+    .expect("b");
+    std::fs::write(src.join("b/tests.rs"), "use crate::support::helper;\n").expect("tests");
+    std::fs::write(src.join("support.rs"), "use crate::a::X;\n").expect("support");
+    let edges = sibling_edges(&src);
+    std::fs::remove_dir_all(&dir).ok();
+    // Only a ← b: the test code's b → support → a is not the crate's.
+    assert!(cycle(&edges).is_none(), "{edges:?}");
+    assert!(edges.iter().all(|(_, from, _)| from == "a"), "{edges:?}");
 }
 
 #[test]

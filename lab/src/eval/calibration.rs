@@ -259,6 +259,11 @@ pub struct Cell {
 }
 
 impl Cell {
+    /// Whether both coverages lie in their bounds ([`COV68`], [`COV95`]).
+    pub fn in_bounds(&self) -> bool {
+        (COV95.0..=COV95.1).contains(&self.cov95) && (COV68.0..=COV68.1).contains(&self.cov68)
+    }
+
     /// A cell where every point was refused: no answer to score (metrics NaN, `null` in JSON).
     fn refusals(terrain: &str, sensor: &str, band: &str, source: &str, refused: usize) -> Self {
         Self {
@@ -357,7 +362,7 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
     let failures = cells
         .iter()
         .filter(|c| c.n >= MIN_CELL_N)
-        .filter(|c| !(COV95.0..=COV95.1).contains(&c.cov95) || !(COV68.0..=COV68.1).contains(&c.cov68))
+        .filter(|c| !c.in_bounds())
         .map(|c| {
             format!(
                 "{} {} {} {}: n {}, cov68 {:.3} (want [{}, {}]), cov95 {:.3} (want [{}, {}])",
@@ -534,13 +539,11 @@ pub fn print_calibration(report: &CalibrationReport) {
         );
     }
     let judged: Vec<&Cell> = report.cells.iter().filter(|c| c.n >= MIN_CELL_N).collect();
-    let within =
-        |c: &&&Cell| (COV95.0..=COV95.1).contains(&c.cov95) && (COV68.0..=COV68.1).contains(&c.cov68);
     println!(
         "cells with n ≥ {MIN_CELL_N}: {}; in both bounds: {}; that one factor on σ each would bring \
          into both: {} (`sd_factor95` and `one_factor_reaches` in calibration.json)",
         judged.len(),
-        judged.iter().filter(within).count(),
+        judged.iter().filter(|c| c.in_bounds()).count(),
         judged.iter().filter(|c| c.one_factor_reaches).count()
     );
 }
@@ -549,22 +552,30 @@ pub fn print_calibration(report: &CalibrationReport) {
 mod tests {
     use super::*;
 
+    /// 4 000 errors at the standard normal's quantiles: an exactly Gaussian sample.
+    fn gaussian_errors() -> Vec<f64> {
+        let n = 4000;
+        (0..n)
+            .map(|i| distrs::Normal::ppf((i as f64 + 0.5) / n as f64, 0.0, 1.0))
+            .collect()
+    }
+
+    /// `errors` as answers of mean 0 and σ `sd`.
+    fn samples(errors: &[f64], sd: f64) -> Vec<Sample> {
+        errors
+            .iter()
+            .map(|&e| Sample {
+                mean: 0.0,
+                sd,
+                truth: e,
+            })
+            .collect()
+    }
+
     #[test]
     fn a_gaussian_sample_has_a_diagonal_reliability_curve_and_a_too_narrow_sigma_falls_below_it() {
-        let n = 4000;
-        let errors: Vec<f64> = (0..n)
-            .map(|i| distrs::Normal::ppf((i as f64 + 0.5) / n as f64, 0.0, 1.0))
-            .collect();
-        let sample = |sd: f64| -> Vec<Sample> {
-            errors
-                .iter()
-                .map(|&e| Sample {
-                    mean: 0.0,
-                    sd,
-                    truth: e,
-                })
-                .collect()
-        };
+        let errors = gaussian_errors();
+        let sample = |sd: f64| samples(&errors, sd);
         for [level, share] in reliability(&sample(1.0)) {
             assert!((share - level).abs() < 2e-3, "level {level}: {share}");
         }
@@ -575,20 +586,7 @@ mod tests {
 
     #[test]
     fn one_factor_finds_a_sigma_half_too_narrow_and_cannot_mend_heavy_tails() {
-        let n = 4000;
-        let unit: Vec<f64> = (0..n)
-            .map(|i| distrs::Normal::ppf((i as f64 + 0.5) / n as f64, 0.0, 1.0))
-            .collect();
-        let samples = |errors: &[f64], sd: f64| -> Vec<Sample> {
-            errors
-                .iter()
-                .map(|&e| Sample {
-                    mean: 0.0,
-                    sd,
-                    truth: e,
-                })
-                .collect()
-        };
+        let unit = gaussian_errors();
         let (factor, reaches) = one_factor(&samples(&unit, 0.5));
         assert!((factor - 2.0).abs() < 0.02, "factor {factor}");
         assert!(reaches);
