@@ -3,7 +3,9 @@
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{self, Encoding};
 use rangegp_proto::keys::QueryKind;
-use rangegp_proto::msg::{ElevationReply, ElevationRequest, ErrorCode, Ray};
+use rangegp_proto::msg::{
+    Camera, ElevationReply, ElevationRequest, ErrorCode, PoseCorrection, Ray, Rigid, RobotModel, ViewRequest,
+};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_tests::{error_code, world, Harness};
 
@@ -87,8 +89,52 @@ fn every_bad_request_has_its_code() -> anyhow::Result<()> {
         "{} bytes of message",
         refused.message.len()
     );
+    // Requests of a few bytes that ask for unbounded work: refused before any of it is done.
+    let huge_view = ViewRequest {
+        version: PROTOCOL_VERSION,
+        position_m: [0.0, 0.0, 1.0],
+        orientation_xyzw: [0.0, 0.0, 0.0, 1.0],
+        camera: Camera::Pinhole {
+            width: 100_000,
+            height: 100_000,
+            hfov_rad: 1.0,
+            max_range_m: 10.0,
+        },
+    };
+    assert_eq!(
+        error_code(c.view(&huge_view).expect_err("10¹⁰ pixels")),
+        ErrorCode::BatchTooLarge
+    );
+    let identity = Rigid {
+        translation_m: [0.0; 3],
+        rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+    };
+    let many = vec![
+        PoseCorrection::Scan {
+            publisher_id: 2,
+            sequence: 0,
+            pose: identity,
+        };
+        101
+    ];
+    assert_eq!(
+        error_code(c.correct(&many).expect_err("101 corrections")),
+        ErrorCode::BatchTooLarge
+    );
+    // A subnormal footprint once divided to a zero resolution and panicked a query thread.
+    let speck = RobotModel {
+        footprint_radius_m: 5e-324,
+        max_slope_deg: 20.0,
+        max_step_m: 0.2,
+        lethal_risk: 0.5,
+    };
+    assert_eq!(
+        error_code(c.slope(&[[1.0, 1.0]], Some(speck)).expect_err("radius")),
+        ErrorCode::InvalidArgument
+    );
     // The daemon counted every failure and still serves.
     let s = c.status()?;
-    assert_eq!(s.queries_failed, 1 + 3 + 4 + 2);
+    assert_eq!(s.queries_failed, 1 + 3 + 4 + 2 + 3);
+    assert_eq!(c.slope(&[[1.0, 1.0]], None)?.items.len(), 1);
     Ok(())
 }

@@ -246,6 +246,12 @@ mod tests {
         assert_eq!(field("[ingest]\npoll_interval_ms = 0"), "ingest.poll_interval_ms");
         assert_eq!(field("[checkpoint]\nkeep = 1"), "checkpoint.keep");
         assert_eq!(field("[layers]\nmax_slope_deg = 95.0"), "layers");
+        assert_eq!(field("[layers]\nfootprint_radius_m = 5e-324"), "layers");
+        // Once passed validation and aborted at start on an allocation of that size.
+        assert_eq!(field("[window]\ncapacity = 1000000000000"), "window.capacity");
+        assert_eq!(field("[ingest]\nqueue_len = 1000000000000"), "ingest.queue_len");
+        assert_eq!(field("[query]\nmax_batch = 1000000000000"), "query.max_batch");
+        assert_eq!(field("[query]\nthreads = 100000"), "query.threads");
         assert_eq!(
             field("[zenoh]\nlisten = [\"not an endpoint\"]"),
             "zenoh.listen / zenoh.connect"

@@ -5,6 +5,18 @@ use crate::gp::KernelFamily;
 use rangegp_proto::keys::MapKeys;
 use rangegp_transport::zenoh_config;
 
+/// Most returns a scan may carry: four times an OS1-128's 262 144 (each costs shared memory
+/// and an ingest copy up front).
+const MAX_POINTS: usize = 1 << 22;
+/// Longest ingest or aggregate queue, scans: a queue is memory held, not throughput.
+const MAX_QUEUE_LEN: usize = 4096;
+/// Most window maps (each holds its scan's factors: some MB).
+const MAX_WINDOW: usize = 256;
+/// Largest batch a query may carry, items or grid cells (its reply is held in memory whole).
+const MAX_BATCH: usize = 1 << 22;
+/// Most query threads (each one a thread started at once).
+const MAX_QUERY_THREADS: usize = 64;
+
 impl Config {
     /// Checks every value's domain; the error names the first field out of it.
     pub fn validate(&self) -> Result<(), ConfigError> {
@@ -26,7 +38,7 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 41] = [
+        let checks: [(bool, &'static str, &str); 42] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
@@ -52,7 +64,11 @@ impl Config {
                 "ingest.service_name",
                 "must be empty (the default) or a valid iceoryx2 service name",
             ),
-            (i.max_points > 0, "ingest.max_points", "must be positive"),
+            (
+                (1..=MAX_POINTS).contains(&i.max_points),
+                "ingest.max_points",
+                "must be 1 to 4 194 304",
+            ),
             (
                 i.poll_interval_ms > 0,
                 "ingest.poll_interval_ms",
@@ -63,7 +79,11 @@ impl Config {
                 "ingest.cleanup_interval_s",
                 "must be positive",
             ),
-            (i.queue_len > 0, "ingest.queue_len", "must be positive"),
+            (
+                (1..=MAX_QUEUE_LEN).contains(&i.queue_len),
+                "ingest.queue_len",
+                "must be 1 to 4096",
+            ),
             (
                 i.sequence_restart_window > 0,
                 "ingest.sequence_restart_window",
@@ -153,8 +173,16 @@ impl Config {
                 "gp.online.length_scale_bounds",
                 "must be [min, max] with 0 < min < max",
             ),
-            (self.window.capacity > 0, "window.capacity", "must be positive"),
-            (a.queue_len > 0, "aggregate.queue_len", "must be positive"),
+            (
+                (1..=MAX_WINDOW).contains(&self.window.capacity),
+                "window.capacity",
+                "must be 1 to 256",
+            ),
+            (
+                (1..=MAX_QUEUE_LEN).contains(&a.queue_len),
+                "aggregate.queue_len",
+                "must be 1 to 4096",
+            ),
             (
                 a.cpu_share > 0.0 && a.cpu_share <= 1.0,
                 "aggregate.cpu_share",
@@ -176,9 +204,14 @@ impl Config {
                 "must be peer, client or router",
             ),
             (
-                q.max_batch > 0 && q.threads > 0,
-                "query.max_batch and query.threads",
-                "must be positive",
+                (1..=MAX_BATCH).contains(&q.max_batch),
+                "query.max_batch",
+                "must be 1 to 4 194 304",
+            ),
+            (
+                (1..=MAX_QUERY_THREADS).contains(&q.threads),
+                "query.threads",
+                "must be 1 to 64",
             ),
             (
                 positive(q.max_ray_range_m),

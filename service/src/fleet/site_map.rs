@@ -84,7 +84,9 @@ impl SiteMap {
         }
         MapKeys::new(&update.robot).map_err(|_| TileRefusal::Robot(update.robot.clone()))?;
         let key = (update.tile_column, update.tile_row);
-        if key.0.abs() > MAX_TILE_INDEX || key.1.abs() > MAX_TILE_INDEX {
+        if key.0.unsigned_abs() > MAX_TILE_INDEX.unsigned_abs()
+            || key.1.unsigned_abs() > MAX_TILE_INDEX.unsigned_abs()
+        {
             return Err(TileRefusal::Cell(key.0, key.1));
         }
         let n = self.params.tile_cells;
@@ -269,9 +271,11 @@ mod tests {
         ] {
             assert_eq!(site.check(&bad), Err(TileRefusal::Cell(0, 0)));
         }
-        let mut far = update("a", 1, &[]);
-        far.tile_column = i32::MAX;
-        assert_eq!(site.check(&far), Err(TileRefusal::Cell(i32::MAX, 0)));
+        for index in [i32::MAX, i32::MIN, -MAX_TILE_INDEX - 1] {
+            let mut far = update("a", 1, &[]);
+            far.tile_row = index;
+            assert_eq!(site.check(&far), Err(TileRefusal::Cell(0, index)));
+        }
         assert!(matches!(
             site.check(&update("a/b", 1, &[])),
             Err(TileRefusal::Robot(_))

@@ -61,6 +61,8 @@ pub fn answer(
         }
         Endpoint::Corrections => {
             let req: CorrectionRequest = decode(encoding, payload)?;
+            // Each correction is held (and run over every scan held) until applied.
+            check_batch(req.corrections.len(), state)?;
             use super::corrections::{submit, SubmitError};
             let reply = submit(state, &req, std::time::Instant::now()).map_err(|e| Failure {
                 code: match e {
@@ -182,11 +184,12 @@ fn own_cell(state: &DaemonState, snap: &crate::map::MapSnapshot, x: f64, y: f64)
 
 /// The pixels of a validated view request: one ray each, cast like a ray query.
 fn view(req: &ViewRequest, state: &DaemonState) -> Result<ViewReply, Failure> {
+    // Before any ray is built: a 100 000 × 100 000 camera is a few bytes of request.
+    check_batch(usize::try_from(req.camera.pixels()).unwrap_or(usize::MAX), state)?;
     let (rows, cols, rays) = crate::map::view::view_rays(req).map_err(|reason| Failure {
         code: ErrorCode::InvalidArgument,
         message: format!("view: {reason}"),
     })?;
-    check_batch(rays.len(), state)?;
     for (i, r) in rays.iter().enumerate() {
         check_ray(i, r, state)?;
     }

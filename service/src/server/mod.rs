@@ -16,13 +16,14 @@ use rangegp_proto::msg::{ErrorCode, ErrorReply};
 use rangegp_proto::PROTOCOL_VERSION;
 use rangegp_transport::protocol_encoding;
 use reply::{Outcome, ReplySender};
+use std::panic::AssertUnwindSafe;
 use std::sync::atomic::Ordering::Relaxed;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Instant;
 use thiserror::Error;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 use zenoh::query::Query;
 use zenoh::Wait;
 
@@ -242,7 +243,20 @@ fn serve(endpoint: Endpoint, query: &Query, state: &DaemonState) -> (Encoding, O
         })
     } else {
         let payload = query.payload().map(|p| p.to_bytes()).unwrap_or_default();
-        handler::answer(endpoint, encoding, &payload, state)
+        // A panic is a bug, but it must cost one request, not a query thread: nothing restarts
+        // the workers, and the daemon would answer `overloaded` from then on. Queries only read
+        // the published snapshot, so no state is left half-changed.
+        std::panic::catch_unwind(AssertUnwindSafe(|| {
+            handler::answer(endpoint, encoding, &payload, state)
+        }))
+        .unwrap_or_else(|panic| {
+            let what = panic_message(panic.as_ref());
+            error!(%what, ?endpoint, "a query panicked; answered as an internal error");
+            Err(handler::Failure {
+                code: ErrorCode::Internal,
+                message: format!("the daemon failed on this request: {what}"),
+            })
+        })
     };
     let outcome = match answer {
         Ok(bytes) => {
@@ -267,6 +281,15 @@ fn serve(endpoint: Endpoint, query: &Query, state: &DaemonState) -> (Encoding, O
         crate::metrics::return_freed_memory();
     }
     (encoding, outcome)
+}
+
+/// The text a panic carries (`panic!` with a literal or a formatted message), else a stand-in.
+fn panic_message(panic: &(dyn std::any::Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("a panic without a message")
 }
 
 /// Longest error message sent, bytes: a message quoting a hostile value is cut here.
