@@ -48,6 +48,12 @@ def main() -> int:
         default=1.0,
         help="seconds to keep the publisher after sending: its samples vanish with it",
     )
+    ap.add_argument(
+        "--until-stdin-closes",
+        action="store_true",
+        help="keep the publisher until stdin closes instead of --linger seconds "
+        "(for a parent that knows when the daemon has taken the scan)",
+    )
     args = ap.parse_args()
 
     publisher = rangegp.ScanPublisher(service=args.service, publisher_id=args.publisher_id, max_points=4096)
@@ -63,10 +69,14 @@ def main() -> int:
         max_range_m=MAX_RANGE,
         range_noise_per_m=0.0075 / 29.0,
     )
-    print(f"published {len(ranges)} points as sequence {sequence} on {args.service}")
+    print(f"published {len(ranges)} points as sequence {sequence} on {args.service}", flush=True)
     # A sample lives in its publisher's data segment: a one-shot publisher that exits at once can
-    # take it away before the daemon's next poll. A real driver runs on; this one waits a little.
-    time.sleep(args.linger)
+    # take it away before the daemon's next poll. A real driver runs on; this one waits until told
+    # to go, or a little.
+    if args.until_stdin_closes:
+        sys.stdin.read()
+    else:
+        time.sleep(args.linger)
     return 0
 
 

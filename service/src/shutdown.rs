@@ -75,14 +75,23 @@ mod tests {
     #[test]
     fn a_trigger_wakes_a_sleeper_long_before_its_deadline() {
         let s = Shutdown::new();
-        let sleeper = {
-            let s = s.clone();
-            std::thread::spawn(move || s.sleep_until(Instant::now() + Duration::from_secs(3600)))
-        };
+        let ready = std::sync::Arc::new(std::sync::Barrier::new(2));
+        let (tx, rx) = std::sync::mpsc::channel();
+        {
+            let (s, ready) = (s.clone(), std::sync::Arc::clone(&ready));
+            std::thread::spawn(move || {
+                ready.wait();
+                let _ = tx.send(s.sleep_until(Instant::now() + Duration::from_secs(120)));
+            });
+        }
+        // The sleeper is about to sleep (or sleeping) when the trigger comes; it must answer
+        // long before its two-minute deadline, and the wait for it is bounded.
+        ready.wait();
         s.trigger();
-        // Bounded: the join returns only if the sleeper woke; an hour-long sleep would hang
-        // the test past its harness limit rather than pass.
-        assert!(sleeper.join().expect("sleeper panicked"));
+        let woke = rx
+            .recv_timeout(Duration::from_secs(30))
+            .expect("the sleeper woke");
+        assert!(woke, "the sleep ended by the trigger, not its deadline");
         assert!(s.is_triggered());
     }
 }

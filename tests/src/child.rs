@@ -3,7 +3,7 @@
 //! that a test can `kill -9` a real daemon or a real publisher without any extra binary.
 
 use anyhow::{bail, Context, Result};
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
@@ -25,6 +25,53 @@ pub fn say(what: &str) {
     let mut out = std::io::stdout().lock();
     let _ = writeln!(out, "{LINE_PREFIX}{what}");
     let _ = out.flush();
+}
+
+/// How long a tool a test runs (a compiler, an interpreter, `cargo tree`) may take before the
+/// test kills it and fails: generous, since CI machines are slow, but bounded.
+pub const TOOL_LIMIT: Duration = Duration::from_secs(300);
+
+/// Runs `command` to its end as [`Command::output`] does (stdin closed, stdout and stderr
+/// captured), but kills it and fails when it has not ended within `timeout`.
+pub fn output_within(command: &mut Command, timeout: Duration) -> Result<std::process::Output> {
+    let mut child = command
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .with_context(|| format!("spawning {:?}", command.get_program()))?;
+    let drain = |pipe: Option<Box<dyn std::io::Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut bytes = Vec::new();
+            if let Some(mut p) = pipe {
+                let _ = p.read_to_end(&mut bytes);
+            }
+            bytes
+        })
+    };
+    let stdout = drain(child.stdout.take().map(|p| Box::new(p) as _));
+    let stderr = drain(child.stderr.take().map(|p| Box::new(p) as _));
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(status) = child.try_wait().context("waiting for a tool")? {
+            break status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            bail!(
+                "{:?} still running after {timeout:?}: killed",
+                command.get_program()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let joined = |h: std::thread::JoinHandle<Vec<u8>>| h.join().unwrap_or_default();
+    Ok(std::process::Output {
+        status,
+        stdout: joined(stdout),
+        stderr: joined(stderr),
+    })
 }
 
 /// A child process and what it says.
@@ -96,6 +143,11 @@ impl ChildProcess {
         writeln!(stdin, "{line}")?;
         stdin.flush()?;
         Ok(())
+    }
+
+    /// Closes the child's stdin: it reads end of file.
+    pub fn close_input(&mut self) {
+        self.child.stdin.take();
     }
 
     /// Waits (at most `timeout`) for the child to say a line starting with `prefix`; returns it.

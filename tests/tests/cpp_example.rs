@@ -3,6 +3,7 @@
 //! iceoryx2 and answers elevation over Zenoh from a live daemon. Without a C++ compiler the test
 //! is skipped locally and fails under CI (`CI` set).
 
+use rangegp_tests::child::{output_within, TOOL_LIMIT};
 use rangegp_tests::{unique_id, Harness};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -30,29 +31,32 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let lib = library_dir()?;
     let exe = std::env::temp_dir().join(unique_id("elevation"));
-    let out = Command::new(&compiler)
-        .args(["-std=c++17", "-Wall", "-Wextra", "-Werror"])
-        .arg(root.join("examples/cpp/elevation.cpp"))
-        .arg("-I")
-        .arg(root.join("capi/include"))
-        .arg("-L")
-        .arg(&lib)
-        .arg("-lrangegp_c")
-        // DT_RPATH, searched before LD_LIBRARY_PATH (cargo's points at target/release too, where
-        // a `cargo build` of another revision may have left an older librangegp_c.so).
-        .arg(format!("-Wl,--disable-new-dtags,-rpath,{}", lib.display()))
-        .arg("-o")
-        .arg(&exe)
-        .output()?;
+    let out = output_within(
+        Command::new(&compiler)
+            .args(["-std=c++17", "-Wall", "-Wextra", "-Werror"])
+            .arg(root.join("examples/cpp/elevation.cpp"))
+            .arg("-I")
+            .arg(root.join("capi/include"))
+            .arg("-L")
+            .arg(&lib)
+            .arg("-lrangegp_c")
+            // DT_RPATH, searched before LD_LIBRARY_PATH (cargo's points at target/release too, where
+            // a `cargo build` of another revision may have left an older librangegp_c.so).
+            .arg(format!("-Wl,--disable-new-dtags,-rpath,{}", lib.display()))
+            .arg("-o")
+            .arg(&exe),
+        TOOL_LIMIT,
+    )?;
     anyhow::ensure!(
         out.status.success(),
         "compiling the example failed:\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
     let h = Harness::start(|_| {})?;
-    let run = Command::new(&exe)
-        .args([&h.endpoint, &h.config.map_id, &h.config.scan_service_name()])
-        .output()?;
+    let run = output_within(
+        Command::new(&exe).args([&h.endpoint, &h.config.map_id, &h.config.scan_service_name()]),
+        TOOL_LIMIT,
+    )?;
     std::fs::remove_file(&exe).ok();
     let stdout = String::from_utf8_lossy(&run.stdout);
     anyhow::ensure!(

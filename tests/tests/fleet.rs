@@ -42,13 +42,15 @@ fn child_daemon() -> Result<()> {
     }
 }
 
-/// Writes `config` to a file of its own and starts a child daemon on it.
+/// Writes `config` to a file of its own, starts a child daemon on it and removes the file once
+/// the child has read it (or failed to come up), so that runs leave nothing behind.
 fn spawn_daemon(config: &Config) -> Result<ChildProcess> {
     let path = std::env::temp_dir().join(format!("{}.toml", unique_id("fleet")));
     std::fs::write(&path, toml::to_string(config)?)?;
-    let mut child = ChildProcess::spawn("child_daemon", &path.display().to_string())?;
-    child.expect("ready", WAIT)?;
-    Ok(child)
+    let started = ChildProcess::spawn("child_daemon", &path.display().to_string())
+        .and_then(|mut child| child.expect("ready", WAIT).map(|_| child));
+    std::fs::remove_file(&path)?;
+    started
 }
 
 fn client(map_id: &str, router: &str) -> Result<Client> {

@@ -8,6 +8,7 @@
 //!
 //! The virtual environment and its pinned packages: `rangegp_tests::pyenv`.
 
+use rangegp_tests::child::{output_within, ChildProcess, TOOL_LIMIT};
 use rangegp_tests::pyenv::venv_python;
 use rangegp_tests::{Harness, WAIT};
 use std::path::Path;
@@ -21,39 +22,41 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/python");
     let h = Harness::start(|_| {})?;
 
-    let out = Command::new(&python)
-        .arg(examples.join("publish_scan.py"))
-        .args([
-            "--service",
-            &h.config.scan_service_name(),
-            "--x",
-            "2.0",
-            "--y",
-            "-1.0",
-            "--heading",
-            "0.4",
-        ])
-        .output()?;
-    anyhow::ensure!(
-        out.status.success(),
-        "publish_scan.py failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    // The publisher holds its sample until the daemon has it (a sample vanishes with its
+    // publisher), then is told to go.
+    let mut publish = Command::new(&python);
+    publish.arg(examples.join("publish_scan.py")).args([
+        "--service",
+        &h.config.scan_service_name(),
+        "--x",
+        "2.0",
+        "--y",
+        "-1.0",
+        "--heading",
+        "0.4",
+        "--until-stdin-closes",
+    ]);
+    let mut publisher = ChildProcess::run(publish, false)?;
+    publisher.expect("published", WAIT)?;
     h.wait_status("the Python scan", |s| s.scans_accepted == 1)?;
+    publisher.close_input();
+    anyhow::ensure!(publisher.wait_exit(WAIT)?, "publish_scan.py failed");
 
     // Ahead of the sensor (observed) and far away (not observed).
-    let out = Command::new(&python)
-        .arg(examples.join("query_elevation.py"))
-        .args([
-            "--connect",
-            &h.endpoint,
-            "--map-id",
-            &h.config.map_id,
-            "--timeout",
-        ])
-        .arg(WAIT.as_secs().to_string())
-        .args(["7.0", "1.0", "40.0", "40.0"])
-        .output()?;
+    let out = output_within(
+        Command::new(&python)
+            .arg(examples.join("query_elevation.py"))
+            .args([
+                "--connect",
+                &h.endpoint,
+                "--map-id",
+                &h.config.map_id,
+                "--timeout",
+            ])
+            .arg(WAIT.as_secs().to_string())
+            .args(["7.0", "1.0", "40.0", "40.0"]),
+        TOOL_LIMIT,
+    )?;
     anyhow::ensure!(
         out.status.success(),
         "query_elevation.py failed: {}",
@@ -71,19 +74,21 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     assert!(items[1]["z_m"].is_null());
 
     // A path over the cost layer of the flat ground ahead of the sensor.
-    let out = Command::new(&python)
-        .arg(examples.join("plan_path.py"))
-        .args([
-            "--connect",
-            &h.endpoint,
-            "--map-id",
-            &h.config.map_id,
-            "--timeout",
-        ])
-        .arg(WAIT.as_secs().to_string())
-        .args(["--bbox", "4", "-2", "10", "4", "--res", "0.1"])
-        .args(["--start", "5", "0", "--goal", "9", "2"])
-        .output()?;
+    let out = output_within(
+        Command::new(&python)
+            .arg(examples.join("plan_path.py"))
+            .args([
+                "--connect",
+                &h.endpoint,
+                "--map-id",
+                &h.config.map_id,
+                "--timeout",
+            ])
+            .arg(WAIT.as_secs().to_string())
+            .args(["--bbox", "4", "-2", "10", "4", "--res", "0.1"])
+            .args(["--start", "5", "0", "--goal", "9", "2"]),
+        TOOL_LIMIT,
+    )?;
     anyhow::ensure!(
         out.status.success(),
         "plan_path.py failed: {}",
@@ -120,13 +125,15 @@ fn the_python_packages_pytest_suite_passes_against_a_live_daemon() -> anyhow::Re
     };
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let h = Harness::start(|_| {})?;
-    let out = Command::new(&python)
-        .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
-        .arg(root.join("python/tests"))
-        .env("RANGEGP_CONNECT", &h.endpoint)
-        .env("RANGEGP_MAP_ID", &h.config.map_id)
-        .env("RANGEGP_SERVICE", h.config.scan_service_name())
-        .output()?;
+    let out = output_within(
+        Command::new(&python)
+            .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
+            .arg(root.join("python/tests"))
+            .env("RANGEGP_CONNECT", &h.endpoint)
+            .env("RANGEGP_MAP_ID", &h.config.map_id)
+            .env("RANGEGP_SERVICE", h.config.scan_service_name()),
+        TOOL_LIMIT,
+    )?;
     let stdout = String::from_utf8_lossy(&out.stdout);
     anyhow::ensure!(
         out.status.success(),
@@ -163,11 +170,10 @@ fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its(
     };
     record::write(std::fs::File::create(&ours)?, &scans, &opts)?;
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/reencode_mcap.py");
-    let out = Command::new(&python)
-        .arg(script)
-        .arg(&ours)
-        .arg(&theirs)
-        .output()?;
+    let out = output_within(
+        Command::new(&python).arg(script).arg(&ours).arg(&theirs),
+        TOOL_LIMIT,
+    )?;
     anyhow::ensure!(
         out.status.success(),
         "reencode_mcap.py failed: {}",

@@ -93,6 +93,51 @@ fn test_only(path: &Path) -> bool {
         .any(|w| w[0] == "#[cfg(test)]" && w[1].ends_with(&declaration))
 }
 
+/// `text` without the items under `#[cfg(test)]`: each from the attribute to its `;` or to the
+/// brace closing its block (braces in string and character literals skipped), so that code after
+/// a test module still counts. An item left open runs to the end of the file.
+fn without_test_items(text: &str) -> String {
+    const MARK: &str = "#[cfg(test)]";
+    let mut out = String::new();
+    let mut rest = text;
+    while let Some(at) = rest.find(MARK) {
+        out.push_str(&rest[..at]);
+        let item = &rest[at + MARK.len()..];
+        rest = item_end(item).map_or("", |end| &item[end..]);
+    }
+    out.push_str(rest);
+    out
+}
+
+/// The byte just past the item that starts `item`: its `;` at depth 0, or its block's closing
+/// brace; `None` when it never closes.
+fn item_end(item: &str) -> Option<usize> {
+    let bytes = item.as_bytes();
+    let (mut depth, mut i) = (0usize, 0);
+    while i < bytes.len() {
+        match bytes[i] {
+            b'"' => {
+                i += 1;
+                while i < bytes.len() && bytes[i] != b'"' {
+                    i += if bytes[i] == b'\\' { 2 } else { 1 };
+                }
+            }
+            b'\'' if bytes.get(i + 2) == Some(&b'\'') => i += 2,
+            b'{' => depth += 1,
+            b'}' => {
+                depth = depth.checked_sub(1)?;
+                if depth == 0 {
+                    return Some(i + 1);
+                }
+            }
+            b';' if depth == 0 => return Some(i + 1),
+            _ => {}
+        }
+        i += 1;
+    }
+    None
+}
+
 /// The sibling edges (parent, from child, to child) of a crate's non-test code.
 fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
     let files = modules(src);
@@ -104,10 +149,7 @@ fn sibling_edges(src: &Path) -> BTreeSet<(Module, String, String)> {
         }
         let text = std::fs::read_to_string(path).expect("read");
         // Non-test code without comments (a doc link is not a dependency).
-        let code: String = text
-            .split("#[cfg(test)]")
-            .next()
-            .unwrap_or("")
+        let code: String = without_test_items(&text)
             .lines()
             .map(|l| l.split("//").next().unwrap_or(""))
             .collect::<Vec<_>>()
@@ -249,7 +291,27 @@ fn a_module_declared_for_tests_only_makes_no_cycle() {
     std::fs::remove_dir_all(&dir).ok();
     // Only a ← b: the test code's b → support → a is not the crate's.
     assert!(cycle(&edges).is_none(), "{edges:?}");
-    assert!(edges.iter().all(|(_, from, _)| from == "a"), "{edges:?}");
+    assert_eq!(
+        edges,
+        BTreeSet::from([(Module::new(), "a".to_owned(), "b".to_owned())])
+    );
+}
+
+#[test]
+fn only_the_item_under_cfg_test_is_test_code() {
+    let text = "use crate::a::A;\n#[cfg(test)]\nuse crate::t::T;\n#[cfg(test)]\nmod tests {\n    \
+                use crate::u::U;\n    fn f() { let _ = format!(\"{{ }} {}\", '{'); }\n}\n\
+                fn g() { let _ = crate::b::B; }\n";
+    let code = without_test_items(text);
+    assert!(
+        code.contains("crate::a::A") && code.contains("crate::b::B"),
+        "{code}"
+    );
+    assert!(!code.contains("crate::t") && !code.contains("crate::u"), "{code}");
+    assert_eq!(
+        without_test_items("fn f() {}\n#[cfg(test)]\nmod open {"),
+        "fn f() {}\n"
+    );
 }
 
 #[test]
@@ -286,7 +348,8 @@ fn cargo_tree(package: &str, depth: Option<u32>) -> Vec<String> {
     if let Some(d) = depth {
         cmd.args(["--depth", &d.to_string()]);
     }
-    let out = cmd.output().expect("run cargo tree");
+    let out = rangegp_tests::child::output_within(&mut cmd, rangegp_tests::child::TOOL_LIMIT)
+        .expect("run cargo tree");
     assert!(
         out.status.success(),
         "cargo tree: {}",

@@ -112,6 +112,7 @@ fn bad_views_and_old_clients_are_refused_with_a_reason() -> anyhow::Result<()> {
     match h.client.view(&req) {
         Ok(rep) => {
             assert_eq!(rep.range_m.len(), 12);
+            assert_eq!(rep.hit_probability.len(), 12);
             assert!(rep.hit_probability.iter().all(Option::is_none));
         }
         Err(ClientError::Server { code, .. }) => assert_eq!(code, ErrorCode::NoMap),
