@@ -14,7 +14,7 @@ use rangegp_client::{Client, ScanPublisher};
 use rangegp_lab::fleet::{daemon_config, site_table, StorageRouter};
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::codec::{decode, Encoding};
-use rangegp_proto::fleet::{parse_tile_key, FleetRole, TileUpdate};
+use rangegp_proto::fleet::{parse_tile_key, tile_key, FleetRole, TileUpdate};
 use rangegp_proto::keys::MapKeys;
 use rangegp_proto::msg::Source;
 use rangegp_service::config::Config;
@@ -25,9 +25,10 @@ use rangegp_service::map::{query, MapSnapshot};
 use rangegp_sim::path::Path;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{unique_id, world, WAIT};
-use rangegp_transport::reserve_loopback_endpoint;
+use rangegp_transport::{reserve_loopback_endpoint, zenoh_config};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use zenoh::Wait;
 
 /// Child role: a daemon running the configuration file named in its arguments until killed.
 #[test]
@@ -319,6 +320,25 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         "restarted site: {} tiles from the storage, {} robots",
         status.fleet.tiles_from_storage,
         status.fleet.robots.len()
+    );
+
+    // Tile messages no robot sends: 1 MiB (over any valid tile: refused unread) and a few
+    // undecodable bytes. Both refused and counted; the site answers as before.
+    let config = zenoh_config("client", &[], std::slice::from_ref(&endpoint), false)?;
+    let peer = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let key = tile_key(&site_keys, &MapKeys::new(&ids[0])?, (0, 0));
+    for payload in [vec![0u8; 1 << 20], vec![0xff; 16]] {
+        peer.put(&key, payload)
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    let refused_before = status.fleet.tiles_refused;
+    wait_for("both bad tile messages refused", || {
+        Ok((site.status()?.fleet.tiles_refused >= refused_before + 2).then_some(()))
+    })?;
+    ensure!(
+        answers_equal(&site, &points, &want)?,
+        "bad tile messages changed the site's answers"
     );
     drop(site_daemon);
     Ok(())

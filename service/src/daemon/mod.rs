@@ -425,12 +425,14 @@ impl Daemon {
         let site = config.keys();
         let state = Arc::clone(&self.state);
         let (tx, rx) = std::sync::mpsc::sync_channel(assemble::TILE_QUEUE);
-        let subscriber = assemble::subscribe(session, &site, tx, Arc::clone(&state)).map_err(|source| {
-            StartError::Zenoh {
-                action: "subscribe to the site's tiles",
-                source,
-            }
-        })?;
+        let max_bytes = assemble::max_tile_bytes(&params);
+        let subscriber =
+            assemble::subscribe(session, &site, tx, max_bytes, Arc::clone(&state)).map_err(|source| {
+                StartError::Zenoh {
+                    action: "subscribe to the site's tiles",
+                    source,
+                }
+            })?;
         let settings = SiteSettings {
             site,
             storage_wait: Duration::from_millis(config.fleet.storage_wait_ms),

@@ -19,6 +19,15 @@ use zenoh::Wait;
 /// and counted (the storage still has it: a restart recovers it).
 pub const TILE_QUEUE: usize = 16_384;
 
+/// The largest tile message of `params`' geometry, bytes: every cell of a tile (at most 40 bytes
+/// each in any encoding a robot sends, bincode's varints or JSON's shortest floats aside) and a
+/// header with the robot's name. A larger message is refused in the callback, unread, so that the
+/// queue holds at most [`TILE_QUEUE`] such messages, not as many of the codec's 64 MiB.
+pub fn max_tile_bytes(params: &WorldParams) -> usize {
+    let cells = usize::try_from(params.tile_cells).unwrap_or(0).pow(2);
+    4096 + cells * 160
+}
+
 /// How the site assembles (`[fleet]` and the robots' aggregate geometry).
 #[derive(Debug, Clone)]
 pub struct SiteSettings {
@@ -34,16 +43,26 @@ pub struct SiteSettings {
 pub type Arrival = (String, Vec<u8>);
 
 /// Declares the live subscription to every robot's tiles of the site, feeding `tx` (declared
-/// before the storage is asked, so that nothing published in between is missed).
+/// before the storage is asked, so that nothing published in between is missed). Messages over
+/// `max_bytes` ([`max_tile_bytes`]) are refused and counted without a copy.
 pub fn subscribe(
     session: &zenoh::Session,
     site: &MapKeys,
     tx: SyncSender<Arrival>,
+    max_bytes: usize,
     state: Arc<DaemonState>,
 ) -> zenoh::Result<zenoh::pubsub::Subscriber<()>> {
     session
         .declare_subscriber(site_tiles(site))
         .callback(move |sample| {
+            if sample.payload().len() > max_bytes {
+                state
+                    .fleet
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .tiles_refused += 1;
+                return;
+            }
             let arrival = (
                 sample.key_expr().as_str().to_owned(),
                 sample.payload().to_bytes().into_owned(),
@@ -262,4 +281,45 @@ fn alive_maps(session: &zenoh::Session) -> BTreeSet<String> {
         }
     }
     alive
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rangegp_proto::codec::encode;
+    use rangegp_proto::fleet::TileCell;
+    use rangegp_proto::PROTOCOL_VERSION;
+
+    #[test]
+    fn the_largest_valid_tile_fits_the_bound_in_either_encoding() {
+        let params = WorldParams::default();
+        let n = params.tile_cells;
+        let cells = (0..n * n)
+            .map(|k| TileCell {
+                column: -1_000_000 * n + k % n,
+                row: -1_000_000 * n + k / n,
+                z_m: -1.234_567_890_123_456_7e-300,
+                var_m2: 1.234_567_890_123_456_7e300,
+                scans: u32::MAX,
+            })
+            .collect();
+        let tile = TileUpdate {
+            version: PROTOCOL_VERSION,
+            robot: "r".repeat(64),
+            tile_column: -1_000_000,
+            tile_row: -1_000_000,
+            cell_m: params.cell_m,
+            tile_cells: n,
+            revision: u64::MAX,
+            published_ns: u64::MAX,
+            newest_scan_ns: u64::MAX,
+            cells,
+        };
+        let bound = max_tile_bytes(&params);
+        for encoding in [Encoding::Bincode, Encoding::Json] {
+            let bytes = encode(encoding, &tile).expect("a tile encodes").len();
+            assert!(bytes <= bound, "{encoding:?}: {bytes} bytes over {bound}");
+        }
+        assert!(bound < 64 << 10, "the bound is a tile's, not the codec's 64 MiB");
+    }
 }
