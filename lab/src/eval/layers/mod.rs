@@ -15,15 +15,20 @@ use super::drive::{map_drive, Drive, MappedDrive};
 use super::FamilyOptions;
 use crate::plot::reliability_chart;
 use anyhow::Result;
-use rand::{Rng, SeedableRng};
-use rand_pcg::Pcg64;
-use rangegp_proto::msg::{GridReply, Layer, RobotModel};
+use rangegp_proto::msg::{Layer, RobotModel};
 use rangegp_service::map::grid::{self, GridBox};
-use rangegp_service::map::layers::{cell_layers, HeightGrid, LayerModel, Stencil};
+use rangegp_service::map::layers::LayerModel;
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
 use serde::Serialize;
 use std::path::Path;
+
+mod planning;
+mod truth;
+
+use planning::plan_pairs;
+use truth::error_length_sweep;
+pub use truth::{Truth, TruthLayers};
 
 /// Bounds of the slope's 95 % coverage.
 pub const SLOPE_COV95: (f64, f64) = (0.90, 0.98);
@@ -511,237 +516,6 @@ fn margin_box(b: &GridBox, margin: usize) -> GridBox {
         cols: b.cols + 2 * margin,
         rows: b.rows + 2 * margin,
     }
-}
-
-/// The true layers of one cell.
-#[derive(Debug, Clone, Copy)]
-pub struct Truth {
-    /// Slope angle, radians.
-    pub slope: f64,
-    /// Step across the footprint, metres.
-    pub step: f64,
-    /// Roughness, metres.
-    pub roughness: f64,
-}
-
-/// The layers of the terrain's true heights on a grid box's cells: what the daemon's layers are
-/// scored against (the same cells, the same footprint, σ 0).
-pub struct TruthLayers {
-    /// One per cell of the box, row-major from the lower-left (`None` off the terrain).
-    pub cells: Vec<Option<Truth>>,
-    /// Cells the footprint reaches beyond the box.
-    pub margin: usize,
-}
-
-impl TruthLayers {
-    /// The true layers of `terrain` on `b`'s cells for `model`'s robot.
-    pub fn new(terrain: &Heightmap, b: &GridBox, model: &LayerModel) -> Self {
-        let stencil = Stencil::new(model, b.resolution_m);
-        let margin = stencil.reach() as usize;
-        let outer = margin_box(b, margin);
-        let z: Vec<f64> = (0..outer.rows)
-            .flat_map(|r| (0..outer.cols).map(move |c| (c, r)))
-            .map(|(c, r)| {
-                let x = outer.origin_m[0] + c as f64 * outer.resolution_m;
-                let y = outer.origin_m[1] + r as f64 * outer.resolution_m;
-                terrain.height(x, y).unwrap_or(f64::NAN)
-            })
-            .collect();
-        let sd = vec![0.0; z.len()];
-        let grid = HeightGrid {
-            cols: outer.cols,
-            rows: outer.rows,
-            z: &z,
-            sd: &sd,
-            relief_sd: &[],
-        };
-        let cells = (0..b.rows)
-            .flat_map(|r| (0..b.cols).map(move |c| (c, r)))
-            .map(|(c, r)| {
-                cell_layers(&grid, &stencil, model, c + margin, r + margin).map(|l| Truth {
-                    slope: l.slope,
-                    step: l.step,
-                    roughness: l.roughness,
-                })
-            })
-            .collect();
-        Self { cells, margin }
-    }
-}
-
-/// Slope 95 % coverage when the heights of `plain` (the box with the footprint margin) are
-/// taken with other error correlation lengths.
-fn error_length_sweep(plain: &GridReply, truth: &TruthLayers, model: &LayerModel, n: usize) -> Vec<[f64; 2]> {
-    let z: Vec<f64> = plain
-        .elevation_m
-        .iter()
-        .map(|v| v.map_or(f64::NAN, f64::from))
-        .collect();
-    let sd: Vec<f64> = plain
-        .variance_m2
-        .iter()
-        .map(|v| v.map_or(f64::NAN, |v| f64::from(v).max(0.0).sqrt()))
-        .collect();
-    let grid = HeightGrid {
-        cols: plain.cols as usize,
-        rows: plain.rows as usize,
-        z: &z,
-        sd: &sd,
-        relief_sd: &[],
-    };
-    [0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5]
-        .into_iter()
-        .map(|length| {
-            let m = LayerModel {
-                error_length_m: length,
-                ..*model
-            };
-            let stencil = Stencil::new(&m, plain.resolution_m);
-            let inside: Vec<bool> = (0..n * n)
-                .filter_map(|k| {
-                    let t = truth.cells[k]?;
-                    let (c, r) = (k % n + truth.margin, k / n + truth.margin);
-                    let l = cell_layers(&grid, &stencil, &m, c, r)?;
-                    Some((l.slope - t.slope).abs() <= 1.96 * l.slope_sd)
-                })
-                .collect();
-            [length, share(&inside)]
-        })
-        .collect()
-}
-
-/// What planning over one case gave.
-#[derive(Default)]
-struct Plan {
-    pairs: usize,
-    no_path: usize,
-    path_cells: usize,
-    unsafe_cells: usize,
-    predicted_unsafe_cells: f64,
-    ratios: Vec<f64>,
-}
-
-/// A* between `pairs` random start / goal cells over the cost layer, once per weight of
-/// [`RISK_WEIGHT_SWEEP`] (the same pairs each time), and over the true labels.
-fn plan_pairs(reply: &GridReply, truth: &TruthLayers, pairs: usize, seed: u64) -> Vec<Plan> {
-    let (cols, rows) = (reply.cols as usize, reply.rows as usize);
-    let res = reply.resolution_m;
-    let robot = &reply.robot;
-    let risk = reply.layer(Layer::TraversalCost).unwrap_or(&[]);
-    let stop_risk = reply.layer(Layer::Risk).unwrap_or(&[]);
-    let blocked_map: Vec<bool> = reply.costmap.iter().map(|&c| c == 100 || c < 0).collect();
-    let observed: Vec<bool> = reply.costmap.iter().map(|&c| c >= 0).collect();
-    let untraversable: Vec<bool> = truth
-        .cells
-        .iter()
-        .map(|t| t.is_none_or(|t| t.slope > robot.max_slope_deg.to_radians() || t.step > robot.max_step_m))
-        .collect();
-    let blocked_truth: Vec<bool> = (0..cols * rows)
-        .map(|k| untraversable[k] || !observed[k])
-        .collect();
-    let cell_risk = |k: usize| risk.get(k).copied().flatten().map_or(1.0, f64::from);
-    let mut plans: Vec<Plan> = RISK_WEIGHT_SWEEP.iter().map(|_| Plan::default()).collect();
-    let free: Vec<usize> = (0..cols * rows)
-        .filter(|&k| !blocked_map[k] && !blocked_truth[k])
-        .collect();
-    if free.len() < 2 {
-        return plans;
-    }
-    let mut rng = Pcg64::seed_from_u64(seed);
-    let mut attempts = 0;
-    let mut planned = 0;
-    while planned < pairs && attempts < 50 * pairs {
-        attempts += 1;
-        let (a, b) = (
-            free[rng.random_range(0..free.len())],
-            free[rng.random_range(0..free.len())],
-        );
-        let d = ((a % cols) as f64 - (b % cols) as f64).hypot((a / cols) as f64 - (b / cols) as f64) * res;
-        if d < MIN_PAIR_DISTANCE_M {
-            continue;
-        }
-        let Some((_, oracle_len)) = astar(cols, rows, a, b, &blocked_truth, &|_| 1.0) else {
-            continue;
-        };
-        planned += 1;
-        for (plan, weight) in plans.iter_mut().zip(RISK_WEIGHT_SWEEP) {
-            plan.pairs += 1;
-            match astar(cols, rows, a, b, &blocked_map, &|k| 1.0 + weight * cell_risk(k)) {
-                None => plan.no_path += 1,
-                Some((path, length)) => {
-                    plan.path_cells += path.len();
-                    plan.unsafe_cells += path.iter().filter(|&&k| untraversable[k]).count();
-                    plan.predicted_unsafe_cells += path
-                        .iter()
-                        .map(|&k| stop_risk.get(k).copied().flatten().map_or(0.0, f64::from))
-                        .sum::<f64>();
-                    plan.ratios.push(length / oracle_len.max(1e-9));
-                }
-            }
-        }
-    }
-    plans
-}
-
-/// The cheapest 8-connected path from `a` to `b` avoiding `blocked`, each step its length in
-/// cells times the mean `cost` of its two cells; with the path's length in cells.
-fn astar(
-    cols: usize,
-    rows: usize,
-    a: usize,
-    b: usize,
-    blocked: &[bool],
-    cost: &dyn Fn(usize) -> f64,
-) -> Option<(Vec<usize>, f64)> {
-    const SCALE: f64 = 1000.0;
-    let (bx, by) = ((b % cols) as i64, (b / cols) as i64);
-    let (path, _) = pathfinding::prelude::astar(
-        &a,
-        |&k| {
-            let (x, y) = ((k % cols) as i64, (k / cols) as i64);
-            let mut next = Vec::with_capacity(8);
-            for (dx, dy) in [
-                (-1, -1),
-                (0, -1),
-                (1, -1),
-                (-1, 0),
-                (1, 0),
-                (-1, 1),
-                (0, 1),
-                (1, 1),
-            ] {
-                let (nx, ny) = (x + dx, y + dy);
-                if nx < 0 || ny < 0 || nx >= cols as i64 || ny >= rows as i64 {
-                    continue;
-                }
-                let j = ny as usize * cols + nx as usize;
-                if blocked[j] {
-                    continue;
-                }
-                let step = if dx != 0 && dy != 0 { 2f64.sqrt() } else { 1.0 };
-                next.push((j, (step * 0.5 * (cost(k) + cost(j)) * SCALE).round() as u64));
-            }
-            next
-        },
-        |&k| {
-            let (x, y) = ((k % cols) as i64, (k / cols) as i64);
-            let (dx, dy) = ((x - bx).abs(), (y - by).abs());
-            let octile = (dx.max(dy) - dx.min(dy)) as f64 + 2f64.sqrt() * dx.min(dy) as f64;
-            (octile * SCALE).floor() as u64
-        },
-        |&k| k == b,
-    )?;
-    let length = path
-        .windows(2)
-        .map(|w| {
-            if w[0] % cols != w[1] % cols && w[0] / cols != w[1] / cols {
-                2f64.sqrt()
-            } else {
-                1.0
-            }
-        })
-        .sum();
-    Some((path, length))
 }
 
 /// Root of the mean of squares (NaN-free entries only).
