@@ -3,6 +3,7 @@
 use super::{Provenance, Refusal};
 use serde::{Deserialize, Serialize};
 
+/// Elevation and variance layers over a regular grid (grid_map style), and the planner layers
 /// derived from them when asked for.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GridRequest {
@@ -253,8 +254,6 @@ pub struct SlopeReply {
     /// Answers in request order.
     pub items: Vec<SlopeItem>,
 }
-
-/// How a view's pixels look out of the sensor (the sensor frame: x forward, y left, z up).
 
 #[cfg(test)]
 mod tests {

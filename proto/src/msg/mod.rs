@@ -169,7 +169,7 @@ pub struct RayReply {
     pub items: Vec<RayItem>,
 }
 
-/// Elevation and variance layers over a regular grid (grid_map style), and the planner layers
+/// How a view's pixels look out of the sensor (the sensor frame: x forward, y left, z up).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Camera {
