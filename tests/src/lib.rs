@@ -12,6 +12,7 @@ use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
 use rangegp_sim::ScannerPreset;
 use rangegp_transport::reserve_loopback_endpoint;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
@@ -30,6 +31,30 @@ pub fn unique_id(prefix: &str) -> String {
         std::process::id(),
         NEXT.fetch_add(1, Ordering::Relaxed)
     )
+}
+
+/// A directory of its own under the system's temporary directory, removed with everything in it
+/// when dropped: on a failed assertion or an early `?` too, so that no run leaves files behind.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    /// Creates `<temp>/<unique id with prefix>`.
+    pub fn new(prefix: &str) -> Result<Self> {
+        let dir = std::env::temp_dir().join(unique_id(prefix));
+        std::fs::create_dir_all(&dir)?;
+        Ok(Self(dir))
+    }
+
+    /// Its path.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// Whether `program` runs (`program --version`). Without it a test is skipped where it runs by

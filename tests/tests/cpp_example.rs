@@ -4,7 +4,7 @@
 //! is skipped locally and fails under CI (`CI` set).
 
 use rangegp_tests::child::{output_within, TOOL_LIMIT};
-use rangegp_tests::{unique_id, Harness};
+use rangegp_tests::{Harness, TempDir};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -30,7 +30,8 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
     }
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let lib = library_dir()?;
-    let exe = std::env::temp_dir().join(unique_id("elevation"));
+    let tmp = TempDir::new("elevation")?;
+    let exe = tmp.path().join("elevation");
     let out = output_within(
         Command::new(&compiler)
             .args(["-std=c++17", "-Wall", "-Wextra", "-Werror"])
@@ -57,7 +58,6 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
         Command::new(&exe).args([&h.endpoint, &h.config.map_id, &h.config.scan_service_name()]),
         TOOL_LIMIT,
     )?;
-    std::fs::remove_file(&exe).ok();
     let stdout = String::from_utf8_lossy(&run.stdout);
     anyhow::ensure!(
         run.status.success(),

@@ -5,7 +5,8 @@ use rangegp_lab::demo::{run, DemoOptions};
 
 #[test]
 fn demo_meets_its_accuracy_bars_and_writes_its_outputs() -> anyhow::Result<()> {
-    let out = std::env::temp_dir().join(rangegp_tests::unique_id("demo"));
+    let dir = rangegp_tests::TempDir::new("demo")?;
+    let out = dir.path();
     let opts = DemoOptions {
         scans: 15,
         seed: 0,
@@ -13,7 +14,7 @@ fn demo_meets_its_accuracy_bars_and_writes_its_outputs() -> anyhow::Result<()> {
         rate_hz: 100.0,
         queries_per_scan: 20,
         grid_resolution_m: 1.0,
-        out: out.clone(),
+        out: out.to_path_buf(),
         quiet: true,
     };
     let s = run(&opts)?;
@@ -49,6 +50,5 @@ fn demo_meets_its_accuracy_bars_and_writes_its_outputs() -> anyhow::Result<()> {
         let bytes = std::fs::read(out.join(png))?;
         assert!(bytes.starts_with(b"\x89PNG"), "{png} is not a PNG");
     }
-    std::fs::remove_dir_all(&out).ok();
     Ok(())
 }

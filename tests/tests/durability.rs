@@ -21,18 +21,12 @@ use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
-use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, WAIT};
+use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, TempDir, WAIT};
 use rangegp_transport::{reserve_loopback_endpoint, ReservedEndpoint};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-
-fn temp_dir(name: &str) -> Result<PathBuf> {
-    let dir = std::env::temp_dir().join(unique_id(name));
-    std::fs::create_dir_all(&dir)?;
-    Ok(dir)
-}
 
 /// Child role: a daemon running the configuration file named in its arguments until killed.
 #[test]
@@ -200,7 +194,8 @@ impl Replay {
 #[test]
 fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()> {
     let cycles = env_count("RANGEGP_KILL_CYCLES", 20);
-    let dir = temp_dir("kill")?;
+    let tmp = TempDir::new("kill")?;
+    let dir = tmp.path().to_path_buf();
     let mut base = Config {
         map_id: unique_id("kill"),
         ..Config::default()
@@ -339,7 +334,6 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
     );
     ensure!(restored_len > 0, "no checkpoint ever restored");
     ensure!(lost_max <= 1.0, "lost {lost_max:.2} s of scans in one kill");
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }
 
@@ -388,7 +382,8 @@ fn corrupt(valid: &[u8], rng: &mut impl Rng) -> Vec<u8> {
 #[test]
 fn every_corrupted_checkpoint_is_rejected_and_the_daemon_starts() -> Result<()> {
     let corruptions = env_count("RANGEGP_CORRUPTIONS", 1000);
-    let dir = temp_dir("corrupt")?;
+    let tmp = TempDir::new("corrupt")?;
+    let dir = tmp.path().to_path_buf();
     let ckpt = dir.join("checkpoints");
     // A real checkpoint: a daemon maps a few scans and shuts down (the final write).
     let h = Harness::start(|c| {
@@ -457,6 +452,5 @@ fn every_corrupted_checkpoint_is_rejected_and_the_daemon_starts() -> Result<()> 
     ensure!(h.client.status()?.aggregate.cells == 0, "nothing restored");
     ensure!(h.daemon.metrics().checkpoints_rejected.load(Ordering::Relaxed) == 2);
     drop(h);
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }

@@ -6,12 +6,13 @@ use rangegp_lab::eval::{run, EvalOptions, Experiment};
 
 #[test]
 fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
-    let out = std::env::temp_dir().join(rangegp_tests::unique_id("eval"));
+    let dir = rangegp_tests::TempDir::new("eval")?;
+    let out = dir.path();
     let summary = run(&EvalOptions {
         experiment: Experiment::All,
         quick: true,
         seed: 0,
-        out: out.clone(),
+        out: out.to_path_buf(),
         config: None,
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
@@ -21,7 +22,7 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         "overhang_abs_error.png",
     ];
     let missing: Vec<_> = pictures.iter().filter(|p| !out.join(p).is_file()).collect();
-    std::fs::remove_dir_all(&out).ok();
+    drop(dir);
     assert!(summary.failures.is_empty(), "bars missed: {:?}", summary.failures);
     assert!(missing.is_empty(), "pictures not written: {missing:?}");
     for key in [

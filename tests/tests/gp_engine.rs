@@ -5,13 +5,13 @@ use rangegp_lab::bench::hyper::{run_hyper, HyperOptions};
 
 #[test]
 fn online_hyperparameters_track_the_batch_optimum() -> anyhow::Result<()> {
-    let out = std::env::temp_dir().join(rangegp_tests::unique_id("hyper"));
+    let dir = rangegp_tests::TempDir::new("hyper")?;
     let r = run_hyper(&HyperOptions {
         scans: 30,
         seed: 3,
-        out: out.clone(),
+        out: dir.path().to_path_buf(),
     })?;
-    std::fs::remove_dir_all(&out).ok();
+    drop(dir);
     assert!(r.online_within_one_sd, "{r:?}");
     // Tighter than one (skewed) standard deviation: within a factor 2 of the batch median.
     let ratio = |a: f64, b: f64| (a / b).ln().abs();

@@ -10,15 +10,16 @@ use rangegp_lab::eval::FamilyOptions;
 
 #[test]
 fn quick_layers_meet_the_coverage_risk_and_planning_bars() -> anyhow::Result<()> {
-    let out = std::env::temp_dir().join(format!("rangegp-layers-eval-{}", std::process::id()));
-    let r = run_layers(&FamilyOptions::quick(), &out)?;
+    let dir = rangegp_tests::TempDir::new("layers-eval")?;
+    let out = dir.path();
+    let r = run_layers(&FamilyOptions::quick(), out)?;
     assert!(
         r.quick && r.cases.iter().all(|c| c.cells > 10_000),
         "{:?}",
         r.cases
     );
     assert!(out.join("layers_risk_reliability.png").exists());
-    std::fs::remove_dir_all(&out).ok();
+    drop(dir);
     assert_eq!(failures(&r), Vec::<String>::new(), "{r:#?}");
     assert!(
         r.no_path * 10 <= r.pairs,

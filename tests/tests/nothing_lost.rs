@@ -8,7 +8,7 @@ use rangegp_lab::scangen::{now_ns, GeneratedScan};
 use rangegp_proto::msg::{ElevationItem, Source, StatusReply};
 use rangegp_proto::scan::ScanHeader;
 use rangegp_proto::PROTOCOL_VERSION;
-use rangegp_tests::{unique_id, world, Harness};
+use rangegp_tests::{unique_id, world, Harness, TempDir};
 use std::path::PathBuf;
 
 fn rejected(s: &StatusReply, reason: &str) -> u64 {
@@ -42,15 +42,10 @@ fn send(
     Ok(())
 }
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(unique_id(name));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
 #[test]
 fn a_scan_at_a_far_pose_is_refused_and_every_mapped_point_survives_a_restart() -> Result<()> {
-    let dir = temp_dir("rangegp-far-pose");
+    let tmp = TempDir::new("far-pose")?;
+    let dir = tmp.path().to_path_buf();
     let map_id = unique_id("far");
     let tweak = |c: &mut rangegp_service::config::Config| {
         c.map_id = map_id.clone();
@@ -116,7 +111,6 @@ fn a_scan_at_a_far_pose_is_refused_and_every_mapped_point_survives_a_restart() -
         );
     }
     drop(h);
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }
 

@@ -7,7 +7,7 @@ use rangegp_client::ScanPublisher;
 use rangegp_lab::replay::{self, record, Pace, PoseSource, ReplayOptions};
 use rangegp_lab::scangen::{now_ns, GeneratedScan, ScanGenerator};
 use rangegp_sim::ScannerPreset;
-use rangegp_tests::{points_ahead, rms, unique_id, Harness};
+use rangegp_tests::{points_ahead, rms, Harness, TempDir};
 
 /// Elevation RMSE against the truth at `points` and how many were answered.
 fn score(h: &Harness, points: &[[f64; 2]], truth: impl Fn(&[f64; 2]) -> f64) -> anyhow::Result<(f64, usize)> {
@@ -53,7 +53,8 @@ fn a_recorded_mcap_replayed_maps_as_well_as_the_scans_sent_directly() -> anyhow:
     let scans: Vec<GeneratedScan> = (0..SCANS)
         .map(|i| w.scan(i, t0 + i as u64 * 500_000_000))
         .collect();
-    let file = std::env::temp_dir().join(format!("{}.mcap", unique_id("replay")));
+    let tmp = TempDir::new("replay")?;
+    let file = tmp.path().join("drive.mcap");
     let mount = replay::mount(&[0.3, -0.1, 0.6, 0.0, 2.0, 15.0])?;
     let rec = record::RecordOptions {
         sensor_to_base: mount,
@@ -149,6 +150,5 @@ fn a_recorded_mcap_replayed_maps_as_well_as_the_scans_sent_directly() -> anyhow:
         matches!(&err, replay::ReplayError::Option(m) if m.contains("daemon's connection")),
         "{err}"
     );
-    std::fs::remove_file(&file)?;
     Ok(())
 }

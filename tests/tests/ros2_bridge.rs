@@ -17,7 +17,7 @@ use rangegp_ros2::config::{Reliability, RosConfig, ScansConfig};
 use rangegp_ros2::{Bridge, BridgeConfig};
 use rangegp_sim::ScannerPreset;
 use rangegp_tests::child::{self, ChildProcess};
-use rangegp_tests::{pyenv::venv_python, rms, tool_or_skip, unique_id, Harness, WAIT};
+use rangegp_tests::{pyenv::venv_python, rms, tool_or_skip, Harness, TempDir, WAIT};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
@@ -141,7 +141,8 @@ fn ros2_bridge_child() -> Result<()> {
         .map(|i| w.scan(i, t0 + i as u64 * 500_000_000))
         .collect();
     let mount = replay::mount(&MOUNT)?;
-    let mcap = std::env::temp_dir().join(format!("{}.mcap", unique_id("bridge")));
+    let tmp = TempDir::new("bridge")?;
+    let mcap = tmp.path().join("drive.mcap");
     let rec = record::RecordOptions {
         sensor_to_base: mount,
         ..Default::default()
@@ -173,7 +174,7 @@ fn ros2_bridge_child() -> Result<()> {
         },
     };
     let bridge = Bridge::start(config.clone())?;
-    let out = std::env::temp_dir().join(format!("{}.json", unique_id("bridge")));
+    let out = tmp.path().join("peer.json");
     let mut peer = peer(&python, &mcap, &out, config.ros.domain_id)?;
     peer.expect("matched", PEER_WAIT)?;
     let published = peer.expect("published", PEER_WAIT)?;
@@ -293,8 +294,6 @@ fn ros2_bridge_child() -> Result<()> {
     );
     ensure!(errors.len() * 2 >= nx * ny, "fewer than half the cells known");
     ensure!(rmse < 0.05, "RMSE {rmse} m");
-    std::fs::remove_file(&mcap).ok();
-    std::fs::remove_file(&out).ok();
     child::say("done");
     Ok(())
 }

@@ -8,7 +8,7 @@ use rangegp_client::{Client, ClientError};
 use rangegp_lab::certs::Authority;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
-use rangegp_tests::{unique_id, WAIT};
+use rangegp_tests::{unique_id, TempDir, WAIT};
 use rangegp_transport::reserve_loopback_endpoint;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -42,8 +42,8 @@ fn planner(dir: &Path, port: &str, map_id: &str, cert: &str) -> Result<Client> {
 #[test]
 fn only_listed_certificates_get_answers() -> Result<()> {
     zenoh::init_log_from_env_or("error");
-    let dir = std::env::temp_dir().join(unique_id("tls"));
-    std::fs::create_dir_all(&dir)?;
+    let tmp = TempDir::new("tls")?;
+    let dir = tmp.path();
     let ca = Authority::new(&dir, "ca")?;
     ca.leaf(&dir, "rangegpd", "rangegpd")?;
     ca.leaf(&dir, "planner", "planner-1")?;
@@ -101,6 +101,5 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     // The listed planner is still served.
     assert_eq!(allowed.status()?.scans_received, 0);
     daemon.shutdown();
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(())
 }

@@ -3,11 +3,12 @@
 
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::Source;
-use rangegp_tests::{unique_id, world, Harness};
+use rangegp_tests::{world, Harness, TempDir};
 
 #[test]
 fn tiles_left_behind_go_to_disk_and_come_back_when_the_robot_returns() -> anyhow::Result<()> {
-    let dir = std::env::temp_dir().join(unique_id("sitemap"));
+    let tmp = TempDir::new("sitemap")?;
+    let dir = tmp.path().to_path_buf();
     let h = Harness::start(|c| {
         c.checkpoint.dir = Some(dir.clone());
         c.window.capacity = 2;
@@ -71,6 +72,5 @@ fn tiles_left_behind_go_to_disk_and_come_back_when_the_robot_returns() -> anyhow
         "{compared} of {known} answered again"
     );
     drop(h);
-    std::fs::remove_dir_all(&dir).ok();
     Ok(())
 }

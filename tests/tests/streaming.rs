@@ -6,7 +6,7 @@ use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::scangen::now_ns;
 use rangegp_proto::msg::{MapUpdate, Source};
 use rangegp_sim::ScannerPreset;
-use rangegp_tests::{unique_id, world, Harness, WAIT};
+use rangegp_tests::{world, Harness, TempDir, WAIT};
 use std::io::{Read, Write};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -141,7 +141,8 @@ fn the_aggregate_forgets_what_lies_beyond_its_radius() -> anyhow::Result<()> {
 #[test]
 fn a_reduced_load_run_reports_every_figure() -> anyhow::Result<()> {
     let h = Harness::start(|_| {})?;
-    let out = std::env::temp_dir().join(unique_id("load-out"));
+    let tmp = TempDir::new("load-out")?;
+    let out = tmp.path();
     let opts = LoadOptions {
         connect: h.endpoint.clone(),
         map_id: h.config.map_id.clone(),
@@ -154,7 +155,7 @@ fn a_reduced_load_run_reports_every_figure() -> anyhow::Result<()> {
         seed: 1,
         step_m: 0.5,
         publisher_id: 77,
-        out: out.clone(),
+        out: out.to_path_buf(),
         timeout: WAIT,
     };
     let s = load::run(&opts, |_| {})?;
@@ -189,6 +190,5 @@ fn a_reduced_load_run_reports_every_figure() -> anyhow::Result<()> {
     ] {
         assert!(json.get(key).is_some(), "summary.json lacks {key}");
     }
-    std::fs::remove_dir_all(&out)?;
     Ok(())
 }

@@ -271,7 +271,8 @@ fn no_module_of_any_crate_imports_from_a_module_that_depends_on_it() {
 
 #[test]
 fn a_module_declared_for_tests_only_makes_no_cycle() {
-    let dir = std::env::temp_dir().join(format!("rangegp-structure-tests-{}", std::process::id()));
+    let tmp = rangegp_tests::TempDir::new("structure-tests").expect("temp dir");
+    let dir = tmp.path();
     let src = dir.join("src");
     std::fs::create_dir_all(src.join("b")).expect("dirs");
     std::fs::write(
@@ -288,7 +289,6 @@ fn a_module_declared_for_tests_only_makes_no_cycle() {
     std::fs::write(src.join("b/tests.rs"), "use crate::support::helper;\n").expect("tests");
     std::fs::write(src.join("support.rs"), "use crate::a::X;\n").expect("support");
     let edges = sibling_edges(&src);
-    std::fs::remove_dir_all(&dir).ok();
     // Only a ← b: the test code's b → support → a is not the crate's.
     assert!(cycle(&edges).is_none(), "{edges:?}");
     assert_eq!(
@@ -316,7 +316,8 @@ fn only_the_item_under_cfg_test_is_test_code() {
 
 #[test]
 fn the_check_finds_a_cycle_where_there_is_one() {
-    let dir = std::env::temp_dir().join(format!("rangegp-structure-{}", std::process::id()));
+    let tmp = rangegp_tests::TempDir::new("structure").expect("temp dir");
+    let dir = tmp.path();
     let src = dir.join("src");
     std::fs::create_dir_all(src.join("b")).expect("dirs");
     std::fs::write(src.join("lib.rs"), "pub mod a;\npub mod b;\n").expect("lib");
@@ -328,7 +329,6 @@ fn the_check_finds_a_cycle_where_there_is_one() {
     )
     .expect("inner");
     let found = cycle(&sibling_edges(&src));
-    std::fs::remove_dir_all(&dir).ok();
     let (parent, c) = found.expect("a ⇄ b is a cycle");
     assert!(parent.is_empty());
     assert!(
