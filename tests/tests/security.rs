@@ -44,18 +44,18 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     zenoh::init_log_from_env_or("error");
     let tmp = TempDir::new("tls")?;
     let dir = tmp.path();
-    let ca = Authority::new(&dir, "ca")?;
-    ca.leaf(&dir, "rangegpd", "rangegpd")?;
-    ca.leaf(&dir, "planner", "planner-1")?;
-    ca.leaf(&dir, "intruder", "intruder")?;
-    let rogue = Authority::new(&dir, "rogue-ca")?;
-    rogue.leaf(&dir, "forged", "planner-1")?;
+    let ca = Authority::new(dir, "ca")?;
+    ca.leaf(dir, "rangegpd", "rangegpd")?;
+    ca.leaf(dir, "planner", "planner-1")?;
+    ca.leaf(dir, "intruder", "intruder")?;
+    let rogue = Authority::new(dir, "rogue-ca")?;
+    rogue.leaf(dir, "forged", "planner-1")?;
 
     let reserved = reserve_loopback_endpoint()?;
     let port = reserved.port().to_string();
     let daemon_config = render(
         "zenoh-rangegpd.json5",
-        &dir,
+        dir,
         &port,
         dir.join("zenoh-rangegpd.json5"),
     )?;
@@ -71,7 +71,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     drop(reserved);
     let map_id = config.map_id.clone();
 
-    let allowed = planner(&dir, &port, &map_id, "planner")?;
+    let allowed = planner(dir, &port, &map_id, "planner")?;
     allowed.wait_for_daemon(WAIT)?;
     let status = allowed.status()?;
     assert_eq!(status.scans_received, 0);
@@ -79,7 +79,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     assert!(refused, "an elevation query is answered (here: no map yet)");
 
     // Signed by the right CA but not listed: the session opens, queries go unanswered.
-    let intruder = planner(&dir, &port, &map_id, "intruder")?;
+    let intruder = planner(dir, &port, &map_id, "intruder")?;
     assert!(
         intruder.wait_for_daemon(Duration::from_secs(2)).is_err(),
         "intruder saw the daemon"
@@ -91,7 +91,7 @@ fn only_listed_certificates_get_answers() -> Result<()> {
     );
 
     // A certificate from another CA (same common name): no session with the daemon at all.
-    match planner(&dir, &port, &map_id, "forged") {
+    match planner(dir, &port, &map_id, "forged") {
         Ok(forged) => {
             let answer = forged.status();
             assert!(answer.is_err(), "forged certificate got {answer:?}");
