@@ -1,0 +1,140 @@
+//! The σ factors of held residuals: per source, grazing class, range bin and fifth by σ.
+
+use super::{Residual, Residuals, MIN_RESIDUALS, SCALE_BOUNDS};
+use crate::map::scales::{BinScale, ScaleTable, BINS, SIGMA_GROUPS};
+use std::collections::VecDeque;
+
+/// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes the scales of the
+/// nearest range bin of its grazing class that has them (the wider, between two as near); a
+/// class with none at all takes the nearest class's. So an empty cell neither pulls its
+/// neighbours' interpolation toward 1 nor answers with the map's raw σ.
+pub(super) fn table_of(residuals: &Residuals) -> ScaleTable {
+    let rows: Vec<Option<[BinScale; BINS]>> = residuals.iter().map(row_of).collect();
+    let width = |row: &[BinScale; BINS]| row.iter().map(BinScale::width).sum::<f64>();
+    std::array::from_fn(|c| nearest_filled(&rows, c, width).unwrap_or_default())
+}
+
+/// One grazing class's scales by range bin, gaps filled from the nearest bin; `None` when no
+/// bin has [`MIN_RESIDUALS`].
+fn row_of(bins: &[VecDeque<Residual>; BINS]) -> Option<[BinScale; BINS]> {
+    let learnt: Vec<Option<BinScale>> = bins
+        .iter()
+        .map(|b| (b.len() >= MIN_RESIDUALS).then(|| bin_scale_of(b)))
+        .collect();
+    learnt
+        .iter()
+        .any(Option::is_some)
+        .then(|| std::array::from_fn(|k| nearest_filled(&learnt, k, BinScale::width).unwrap_or_default()))
+}
+
+/// `items[k]` if present, else the nearest present one (of two as near, the one `width` calls
+/// wider).
+fn nearest_filled<T: Copy>(items: &[Option<T>], k: usize, width: impl Fn(&T) -> f64) -> Option<T> {
+    (0..items.len()).find_map(|d| {
+        let below = k.checked_sub(d).and_then(|i| items[i]);
+        let above = items.get(k + d).copied().flatten();
+        match (below, above) {
+            (Some(a), Some(b)) => Some(if width(&a) >= width(&b) { a } else { b }),
+            (a, b) => a.or(b),
+        }
+    })
+}
+
+/// The scales of one bin: its residuals sorted by the answer's σ, cut into [`SIGMA_GROUPS`]
+/// groups of equal count when each can hold [`MIN_RESIDUALS`] (else one group for all).
+fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
+    let mut sorted: Vec<Residual> = residuals.iter().copied().collect();
+    sorted.sort_by(|a, b| a.var.total_cmp(&b.var));
+    let mut out = BinScale::default();
+    if sorted.is_empty() {
+        return out;
+    }
+    let group = |g: &[Residual]| (0.5 * g[g.len() / 2].var.ln(), scale_of(g));
+    if sorted.len() < SIGMA_GROUPS * MIN_RESIDUALS {
+        // One group: every slot holds the whole bin's scale.
+        let (log_sd, scale) = group(&sorted);
+        out.log_sd = [log_sd; SIGMA_GROUPS];
+        out.scale = [scale; SIGMA_GROUPS];
+        return out;
+    }
+    let n = sorted.len();
+    for k in 0..SIGMA_GROUPS {
+        (out.log_sd[k], out.scale[k]) = group(&sorted[k * n / SIGMA_GROUPS..(k + 1) * n / SIGMA_GROUPS]);
+    }
+    out
+}
+
+/// The σ scale of one group: within the band where 93–97 % of residuals fall inside 1.96 σ and
+/// 62–74 % inside 1 σ, the one nearest to 95 % coverage; where heavy tails leave no such band, the
+/// geometric middle of the two demands. 1 until [`MIN_RESIDUALS`] are held. Never below 1 where
+/// most of the group's weight lies in residuals whose return noise exceeds the map's own
+/// variance ([`noise_dominated`]): those residuals cannot show a map too unsure, only one too
+/// sure.
+pub(super) fn scale_of(residuals: &[Residual]) -> f64 {
+    if residuals.len() < MIN_RESIDUALS {
+        return 1.0;
+    }
+    let least = if noise_dominated(residuals) {
+        1.0
+    } else {
+        SCALE_BOUNDS.0
+    };
+    let at = |k: f64, share: f64| scale_for_coverage(residuals, k, share);
+    let target = at(1.96, 0.95);
+    let lo = at(1.96, 0.93).max(at(1.0, 0.62));
+    let hi = at(1.96, 0.97).min(at(1.0, 0.74));
+    let s = if lo <= hi {
+        target.clamp(lo, hi)
+    } else {
+        (lo * hi).sqrt()
+    };
+    s.clamp(least, SCALE_BOUNDS.1)
+}
+
+/// Whether most of the residuals' weight ([`weight_in`]) lies where the return's own noise
+/// variance exceeds the map's variance. A return 3 cm noisy tests a map of 5 mm σ hardly at all:
+/// any scale of σ down to the smallest covers it, so the bisection would shrink σ to its bound
+/// (seen near a VLP-16, whose 3 cm floor the daemon measures). The unseen relief does not count
+/// here: it is part of the answer's σ, so a scale it makes small still leaves σ covering.
+fn noise_dominated(residuals: &[Residual]) -> bool {
+    let weight = weight_in(residuals);
+    let all: f64 = residuals.iter().map(&weight).sum();
+    let noisy: f64 = residuals
+        .iter()
+        .filter(|r| r.noise_var > r.var)
+        .map(&weight)
+        .sum();
+    noisy > 0.5 * all
+}
+
+/// Each residual's weight among `residuals`: the ground area it stands for, or 1 each where the
+/// weights sum to nothing (every return on a vertical face).
+fn weight_in(residuals: &[Residual]) -> impl Fn(&Residual) -> f64 {
+    let by_area = residuals.iter().map(|r| r.weight).sum::<f64>() > 0.0;
+    move |r: &Residual| if by_area { r.weight } else { 1.0 }
+}
+
+/// The smallest scale s (bisection in log s over [`SCALE_BOUNDS`]) at which a `share` of the
+/// residuals lies within k·sqrt(s²·var + relief_var + noise_var).
+fn scale_for_coverage(residuals: &[Residual], k: f64, share: f64) -> f64 {
+    let weight = weight_in(residuals);
+    let need = share * residuals.iter().map(&weight).sum::<f64>();
+    let covered = |s: f64| {
+        let s2 = s * s;
+        residuals
+            .iter()
+            .filter(|r| r.r2 <= k * k * (s2 * r.var + r.relief_var + r.noise_var))
+            .map(&weight)
+            .sum::<f64>()
+    };
+    let (mut lo, mut hi) = (SCALE_BOUNDS.0.ln(), SCALE_BOUNDS.1.ln());
+    for _ in 0..30 {
+        let mid = 0.5 * (lo + hi);
+        if covered(mid.exp()) >= need {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    hi.exp()
+}

@@ -1,0 +1,283 @@
+//! Prequential σ calibration: each new scan tests the maps as they stood before it arrived.
+//!
+//! A stratified sample of the scan's returns is answered by [`query::raw_elevation`] over the
+//! snapshot from before the scan. Each return is a fresh, independent measurement of ground the
+//! maps already claim to know, so its residual against the answer, with the return's own noise
+//! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
+//! area their return stands for and kept per (source, grazing class, range bin from the answering
+//! sensor) over the last scans; within a cell, each fifth of them by the answer's own σ gets the
+//! factor on σ whose 68 % and 95 % intervals cover that share. Nothing here knows the terrain or
+//! the sensor: it adapts to whatever the robot drives on, and follows it when the terrain changes
+//! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
+//! [`PAIR_EVERY_SCANS`] scans, pairs of returns a footprint apart also measure how the maps'
+//! errors correlate ([`super::correlation`]), and the held residuals give the errors' tail shape
+//! ([`TailShape`]): what planner layers turn height σ into slope σ and risks with.
+
+use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
+use super::query::{self, Answerer};
+use super::relief::ReliefLearner;
+use super::scales::{bin_of, class_of, SigmaScales, TailShape, BINS, CLASSES};
+use super::window::MapSnapshot;
+use super::LocalRangeMap;
+use crate::gp::sphere;
+use crate::scan::ScanInput;
+use nalgebra::Vector3;
+use rangegp_proto::msg::Source;
+use std::collections::{HashMap, VecDeque};
+
+mod factors;
+mod sample;
+
+use factors::table_of;
+use sample::stratified_sample;
+
+/// Returns sampled per range bin from each scan.
+pub const PER_BIN_PER_SCAN: usize = 48;
+/// Residuals a bin remembers (about 30 scans at the full quota).
+pub const BIN_MEMORY: usize = 1500;
+/// A bin's scale stays 1 (the map's own, leave-one-out-calibrated σ) until it holds this many.
+pub const MIN_RESIDUALS: usize = 40;
+/// Bounds of a scale: σ is never shrunk below a tenth nor widened past a hundredfold.
+pub const SCALE_BOUNDS: (f64, f64) = (0.1, 100.0);
+
+/// One tested answer: squared residual, the answer's variance and the return's own noise
+/// variance along z, m².
+#[derive(Debug, Clone, Copy, Default)]
+struct Residual {
+    r2: f64,
+    var: f64,
+    noise_var: f64,
+    /// Ground area the return stands for, relative ([`area_weight`]).
+    weight: f64,
+    /// The answer's distance to its map's nearest datum, metres.
+    data_m: f64,
+    /// The relief variance unseen at that distance (window answers with the relief in heights;
+    /// else 0), m²: added to the scaled variance, as the snapshot adds it.
+    relief_var: f64,
+}
+
+/// Recent residuals of one source, by grazing class and range bin.
+type Residuals = [[VecDeque<Residual>; BINS]; CLASSES];
+
+/// The fitter's calibration state: recent residuals per cell and the scales they give.
+#[derive(Debug, Clone, Default)]
+pub struct Calibrator {
+    window: Residuals,
+    aggregate: Residuals,
+    correlation: CorrelationLearner,
+    relief: ReliefLearner,
+    scales: SigmaScales,
+}
+
+impl Calibrator {
+    /// A calibrator with nothing learnt. It learns the relief unseen between data
+    /// ([`super::relief`]) from maps that index their data, for planner layers; with
+    /// `relief_in_heights` it also adds it to window answers' σ (`gp.unseen_relief`).
+    pub fn new(relief_in_heights: bool) -> Self {
+        let mut calibrator = Self::default();
+        calibrator.scales.relief_in_heights = relief_in_heights;
+        calibrator
+    }
+
+    /// The current scales.
+    pub fn scales(&self) -> SigmaScales {
+        self.scales
+    }
+
+    /// Residuals held, window then aggregate, by range bin (all grazing classes).
+    #[cfg(test)]
+    pub fn counts(&self) -> ([usize; BINS], [usize; BINS]) {
+        let count = |r: &Residuals| std::array::from_fn(|b| r.iter().map(|c| c[b].len()).sum());
+        (count(&self.window), count(&self.aggregate))
+    }
+
+    /// Tests `snapshot` (the maps before `scan`) against a stratified sample of `scan`'s returns
+    /// and updates the scales; `map` is the scan's own fitted map, which gives each return's
+    /// surface normal (the ground area it stands for). Returns how many returns were answered.
+    /// Does nothing before the first map.
+    pub fn observe(&mut self, snapshot: &MapSnapshot, scan: &ScanInput, map: &LocalRangeMap) -> usize {
+        let Some(newest) = snapshot.maps().first() else {
+            return 0;
+        };
+        let relief_before = self.scales.relief;
+        self.relief.observe(scan, map);
+        self.scales.relief = self.relief.relief();
+        let in_heights = self.scales.relief_in_heights;
+        let reference = newest.sensor_position();
+        let sample = stratified_sample(scan, map, &reference);
+        let answers = query::par_map(
+            &sample,
+            rayon::current_num_threads(),
+            |&(p, noise_var, weight)| {
+                let a = query::raw_elevation(snapshot, p.x, p.y)?;
+                Some((p, noise_var, weight, a))
+            },
+        );
+        let mut touched = [false; 2];
+        let mut answered = 0;
+        for (p, noise_var, weight, a) in answers.into_iter().flatten() {
+            let r2 = (p.z - a.estimate.z).powi(2);
+            if !(r2.is_finite() && a.estimate.var.is_finite()) {
+                continue;
+            }
+            let (bins, which) = match a.by {
+                Answerer::Aggregate => (&mut self.aggregate, 1),
+                Answerer::Window(_) => (&mut self.window, 0),
+            };
+            let q = &mut bins[class_of(a.estimate.grazing)][bin_of(a.rho_m)];
+            if q.len() == BIN_MEMORY {
+                q.pop_front();
+            }
+            q.push_back(Residual {
+                r2,
+                var: a.estimate.var.max(1e-14),
+                noise_var,
+                weight,
+                data_m: a.estimate.data_m,
+                relief_var: 0.0,
+            });
+            touched[which] = true;
+            answered += 1;
+        }
+        // The relief learnt from this scan applies to every held window residual (the new ones
+        // included), and the window's scales are refitted under it.
+        let relief = self.scales.relief;
+        if in_heights {
+            for r in self.window.iter_mut().flatten().flatten() {
+                r.relief_var = relief.var_at(r.data_m);
+            }
+        }
+        if touched[0] || (in_heights && relief != relief_before) {
+            self.scales.window = table_of(&self.window);
+        }
+        if touched[1] {
+            self.scales.aggregate = table_of(&self.aggregate);
+        }
+        if touched[0] || touched[1] {
+            self.scales.tails = self.tails();
+        }
+        if scan.sequence.is_multiple_of(PAIR_EVERY_SCANS) {
+            let pairs = self.pairs(snapshot, scan, &sample);
+            self.correlation.observe(&pairs);
+            self.scales.correlation = self.correlation.correlation();
+        }
+        answered
+    }
+
+    /// Pairs of `scan`'s returns a footprint apart ([`PAIR_SEPARATION_M`]), each sampled return
+    /// with the nearest other return in that band, both answered by `snapshot` (the maps before
+    /// the scan) with σ calibrated by the current scales.
+    fn pairs(
+        &self,
+        snapshot: &MapSnapshot,
+        scan: &ScanInput,
+        sample: &[(Vector3<f64>, f64, f64)],
+    ) -> Vec<PairResidual> {
+        let cell = PAIR_SEPARATION_M.1;
+        let key = |p: &Vector3<f64>| ((p.x / cell).floor() as i64, (p.y / cell).floor() as i64);
+        let origin = scan.pose.translation.vector;
+        let mut cells: HashMap<(i64, i64), Vec<Return>> = HashMap::new();
+        for ray in &scan.rays {
+            let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+            let dir = scan.pose.rotation * Vector3::new(x, y, z);
+            let p = origin + dir * ray.range;
+            let sd = scan.range_sd(ray.range) * dir.z;
+            cells.entry(key(&p)).or_default().push((p, sd * sd));
+        }
+        let partner = |p: &Vector3<f64>| -> Option<Return> {
+            let (i, j) = key(p);
+            let mut best: Option<(f64, Vector3<f64>, f64)> = None;
+            for di in -1..=1 {
+                for dj in -1..=1 {
+                    for &(q, noise) in cells.get(&(i + di, j + dj)).into_iter().flatten() {
+                        let d = (q.x - p.x).hypot(q.y - p.y);
+                        let inside = (PAIR_SEPARATION_M.0..=PAIR_SEPARATION_M.1).contains(&d);
+                        if inside && best.is_none_or(|(b, _, _)| d < b) {
+                            best = Some((d, q, noise));
+                        }
+                    }
+                }
+            }
+            best.map(|(_, q, noise)| (q, noise))
+        };
+        let answer = |p: &Vector3<f64>| -> Option<(f64, f64)> {
+            let a = query::raw_elevation(snapshot, p.x, p.y)?;
+            let source = match a.by {
+                Answerer::Aggregate => Source::Aggregate,
+                Answerer::Window(_) => Source::Window,
+            };
+            let var = self.scales.calibrate(source, a.rho_m, &a.estimate).var_m2;
+            Some((p.z - a.estimate.z, var.sqrt()))
+        };
+        query::par_map(sample, rayon::current_num_threads(), |&(p, noise_p, _)| {
+            let (q, noise_q) = partner(&p)?;
+            let (ep, sp) = answer(&p)?;
+            let (eq, sq) = answer(&q)?;
+            Some(PairResidual {
+                residual_m: [ep, eq],
+                sd_m: [sp, sq],
+                noise_var_m2: [noise_p, noise_q],
+                separation_m: (q.x - p.x).hypot(q.y - p.y),
+            })
+        })
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+
+    /// The shape of the calibrated errors: the shares of every held residual (both sources,
+    /// weighted by area) within ±1 and ±1.96 calibrated σ, fitted by [`TailShape::fit`];
+    /// Gaussian until [`MIN_TAIL_RESIDUALS`] are held.
+    fn tails(&self) -> TailShape {
+        let mut inside = [0.0; 2];
+        let mut total = 0.0;
+        let mut count = 0;
+        for (residuals, table) in [
+            (&self.window, &self.scales.window),
+            (&self.aggregate, &self.scales.aggregate),
+        ] {
+            for (c, bins) in residuals.iter().enumerate() {
+                for (b, q) in bins.iter().enumerate() {
+                    for r in q {
+                        let f = table[c][b].factor(r.var.sqrt());
+                        let latent = f * f * r.var + r.relief_var;
+                        if r.noise_var > LATENT_SHARE * latent {
+                            continue;
+                        }
+                        let v = latent + r.noise_var;
+                        let w = r.weight.max(1e-9);
+                        total += w;
+                        count += 1;
+                        for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+                            if r.r2 <= k * k * v {
+                                *share += w;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        if count < MIN_TAIL_RESIDUALS {
+            return TailShape::default();
+        }
+        TailShape::fit(inside[0] / total, inside[1] / total)
+    }
+}
+
+/// A return in map coordinates with its noise variance along z, m².
+type Return = (Vector3<f64>, f64);
+
+/// Every this many scans (by sequence) pairs of returns test how the maps' errors correlate (the
+/// pairs need every return in a spatial hash: a few milliseconds for an OS1-64 scan).
+pub const PAIR_EVERY_SCANS: u64 = 2;
+
+/// Only residuals whose return noise variance is at most this share of the answer's calibrated
+/// variance show the shape: the rest are mostly the return's own (Gaussian) noise, which would
+/// hide the heavy tails of the map's errors that planner risks are about.
+pub const LATENT_SHARE: f64 = 0.25;
+
+/// Residuals held before the tail shape is fitted (a Gaussian until then).
+pub const MIN_TAIL_RESIDUALS: usize = 400;
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,209 @@
+use super::factors::scale_of;
+use super::sample::coprime_stride;
+use super::*;
+use crate::map::test_support::{family_terrain, params, scan_of};
+use crate::map::Window;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use rangegp_sim::Heightmap;
+use std::sync::Arc;
+
+/// The seed-000 scanner 0.75 m above flat ground, at `x` along the track.
+fn scan_over_flat(x: f64, sequence: u64) -> ScanInput {
+    let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+    let pose = Isometry3::from_parts(Translation3::new(x, 0.0, 0.75), UnitQuaternion::identity());
+    let mut scan = scan_of(&terrain, pose);
+    scan.sequence = sequence;
+    scan
+}
+
+/// Share of `probes` whose true height lies within 1.96 σ of the snapshot's answer.
+fn coverage95(snapshot: &MapSnapshot, terrain: &Heightmap, probes: &[[f64; 2]]) -> f64 {
+    let hits: Vec<bool> = probes
+        .iter()
+        .filter_map(|&[x, y]| {
+            let e = query::elevation(snapshot, x, y);
+            let (z, var) = (e.z_m?, e.z_var_m2?);
+            Some((z - terrain.height(x, y)?).abs() <= 1.96 * var.sqrt())
+        })
+        .collect();
+    assert!(
+        hits.len() > probes.len() / 2,
+        "only {} of {} answered",
+        hits.len(),
+        probes.len()
+    );
+    hits.iter().filter(|&&h| h).count() as f64 / hits.len() as f64
+}
+
+#[test]
+fn on_rough_terrain_the_next_scans_teach_a_sigma_that_covers_the_truth() {
+    // Rough fBm relief (p95 slope 16°) and maps without their own leave-one-out calibration:
+    // their σ is the kernel's, far too sure of this ground.
+    let terrain = family_terrain("fbm-h05-16deg", 7, 40.0);
+    let preset = rangegp_sim::ScannerPreset::seed000();
+    let path = rangegp_sim::Path::wander(3, &terrain, 12, 0.5, 0.2);
+    let mut window = Window::new(16);
+    let mut calibrator = Calibrator::new(true);
+    let mut snapshot = MapSnapshot::default();
+    for i in 0..12 {
+        let mut scan = scan_of(&terrain, path.pose(&terrain, i, preset.mount_height_m));
+        scan.sequence = i as u64 + 1;
+        let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        calibrator.observe(&snapshot, &scan, &map);
+        window.push(Arc::new(map));
+        snapshot = window.snapshot().with_scales(calibrator.scales());
+    }
+    // Probes 1–8 m ahead of and beside the last pose, inside the forward field of view.
+    let last = path.pose(&terrain, 11, preset.mount_height_m);
+    let probes: Vec<[f64; 2]> = (0..400)
+        .map(|k| {
+            let r = 1.0 + 7.0 * ((k * 37) % 400) as f64 / 400.0;
+            let a = -1.2 + 2.4 * ((k * 53) % 400) as f64 / 400.0;
+            let p = last * nalgebra::Point3::new(r * a.cos(), r * a.sin(), 0.0);
+            [p.x, p.y]
+        })
+        .collect();
+    let raw = coverage95(&window.snapshot(), &terrain, &probes);
+    let calibrated = coverage95(&snapshot, &terrain, &probes);
+    assert!(
+        raw < 0.8,
+        "the raw σ already covers {raw:.3}: the test proves nothing"
+    );
+    assert!(
+        calibrated > 0.88,
+        "calibrated coverage {calibrated:.3} (raw {raw:.3})"
+    );
+    let (window_counts, _) = calibrator.counts();
+    assert!(window_counts.iter().sum::<usize>() >= 3 * MIN_RESIDUALS);
+}
+
+#[test]
+fn before_the_first_map_nothing_is_learnt() {
+    let mut calibrator = Calibrator::new(true);
+    let scan = scan_over_flat(0.0, 1);
+    let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+    assert_eq!(calibrator.observe(&MapSnapshot::default(), &scan, &map), 0);
+    let nothing = SigmaScales {
+        relief_in_heights: true,
+        ..SigmaScales::default()
+    };
+    assert_eq!(calibrator.scales(), nothing);
+}
+
+#[test]
+fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
+    let mut residuals = Residuals::default();
+    let r = |sd: f64| Residual {
+        r2: sd * sd,
+        var: 1e-6,
+        noise_var: 0.0,
+        weight: 1.0,
+        ..Residual::default()
+    };
+    // Only range bins 1 and 4 of the last class have residuals: errors 2 mm and 20 mm.
+    residuals[CLASSES - 1][1] = (0..200)
+        .map(|i| r(0.002 * (1.0 + (i % 7) as f64 / 7.0)))
+        .collect();
+    residuals[CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
+    let table = table_of(&residuals);
+    let f = |c: usize, b: usize| table[c][b].factor(1e-3);
+    assert_eq!(f(CLASSES - 1, 0), f(CLASSES - 1, 1), "bin 0 from bin 1");
+    assert_eq!(f(CLASSES - 1, 6), f(CLASSES - 1, 4), "bin 6 from bin 4");
+    // Bins 2 and 3 lie between: 2 is nearer 1, and 3 nearer 4.
+    assert_eq!(f(CLASSES - 1, 2), f(CLASSES - 1, 1));
+    assert_eq!(f(CLASSES - 1, 3), f(CLASSES - 1, 4));
+    // Classes with no residuals at all copy the nearest class.
+    assert_eq!(table[0], table[CLASSES - 1]);
+    assert!(f(CLASSES - 1, 4) > 5.0 * f(CLASSES - 1, 1));
+}
+
+fn residuals(sd: f64, var: f64, n: usize) -> Vec<Residual> {
+    // Deterministic standard normal quantiles: an exactly Gaussian sample.
+    (0..n)
+        .map(|i| {
+            let u = (i as f64 + 0.5) / n as f64;
+            let z = distrs::Normal::ppf(u, 0.0, 1.0);
+            Residual {
+                r2: (sd * z).powi(2),
+                var,
+                noise_var: 0.0,
+                weight: 1.0,
+                ..Residual::default()
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn a_gaussian_error_three_times_the_claimed_sigma_gets_a_scale_of_three() {
+    let r = residuals(0.03, 0.01 * 0.01, 1000);
+    let s = scale_of(&r);
+    assert!((s - 3.0).abs() < 0.05, "scale {s}");
+}
+
+#[test]
+fn the_returns_own_noise_is_not_charged_to_the_map() {
+    let mut r = residuals(0.05, 0.03 * 0.03, 1000);
+    for x in &mut r {
+        x.noise_var = 0.04 * 0.04;
+    }
+    // 0.05² = 0.03² + 0.04²: the map's σ was right.
+    let s = scale_of(&r);
+    assert!((s - 1.0).abs() < 0.05, "scale {s}");
+}
+
+#[test]
+fn returns_noisier_than_the_map_widen_its_sigma_but_never_narrow_it() {
+    // 3 cm returns against a map claiming 5 mm whose errors are 2 mm: the residuals are the
+    // returns' noise; no scale below 1 is shown by them.
+    let mut r = residuals(0.0301, 0.005 * 0.005, 1000);
+    for x in &mut r {
+        x.noise_var = 0.03 * 0.03;
+    }
+    assert_eq!(scale_of(&r), 1.0);
+    // The same returns against a map whose errors are 6 cm (claiming 5 mm): widened.
+    let mut r = residuals(0.067, 0.005 * 0.005, 1000);
+    for x in &mut r {
+        x.noise_var = 0.03 * 0.03;
+    }
+    let s = scale_of(&r);
+    assert!((s - 12.0).abs() < 0.6, "scale {s}");
+}
+
+#[test]
+fn weights_that_sum_to_nothing_fall_back_to_counts() {
+    let mut r = residuals(0.03, 0.01 * 0.01, 1000);
+    for x in &mut r {
+        x.weight = 0.0;
+    }
+    let s = scale_of(&r);
+    assert!((s - 3.0).abs() < 0.05, "scale {s}");
+}
+
+#[test]
+fn few_residuals_leave_the_scale_at_one() {
+    assert_eq!(scale_of(&residuals(1.0, 1e-6, MIN_RESIDUALS - 1)), 1.0);
+}
+
+#[test]
+fn bins_double_in_width() {
+    assert_eq!(bin_of(0.0), 0);
+    assert_eq!(bin_of(2.4), 0);
+    assert_eq!(bin_of(2.5), 1);
+    assert_eq!(bin_of(39.0), 4);
+    assert_eq!(bin_of(500.0), BINS - 1);
+}
+
+#[test]
+fn the_stride_visits_every_index() {
+    for n in [1, 2, 10, 64, 1000, 65_536] {
+        let s = coprime_stride(n);
+        let mut seen = vec![false; n];
+        let mut k = 0;
+        for _ in 0..n {
+            seen[k] = true;
+            k = (k + s) % n;
+        }
+        assert!(seen.iter().all(|&v| v), "n {n}");
+    }
+}
