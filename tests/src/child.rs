@@ -3,7 +3,7 @@
 //! that a test can `kill -9` a real daemon or a real publisher without any extra binary.
 
 use anyhow::{bail, Context, Result};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
@@ -34,44 +34,25 @@ pub const TOOL_LIMIT: Duration = Duration::from_secs(300);
 /// Runs `command` to its end as [`Command::output`] does (stdin closed, stdout and stderr
 /// captured), but kills it and fails when it has not ended within `timeout`.
 pub fn output_within(command: &mut Command, timeout: Duration) -> Result<std::process::Output> {
-    let mut child = command
+    let child = command
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .with_context(|| format!("spawning {:?}", command.get_program()))?;
-    let drain = |pipe: Option<Box<dyn std::io::Read + Send>>| {
-        std::thread::spawn(move || {
-            let mut bytes = Vec::new();
-            if let Some(mut p) = pipe {
-                let _ = p.read_to_end(&mut bytes);
-            }
-            bytes
-        })
-    };
-    let stdout = drain(child.stdout.take().map(|p| Box::new(p) as _));
-    let stderr = drain(child.stderr.take().map(|p| Box::new(p) as _));
-    let deadline = Instant::now() + timeout;
-    let status = loop {
-        if let Some(status) = child.try_wait().context("waiting for a tool")? {
-            break status;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
+    let pid = child.id().to_string();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || tx.send(child.wait_with_output()));
+    match rx.recv_timeout(timeout) {
+        Ok(output) => Ok(output.context("waiting for a tool")?),
+        Err(_) => {
+            let _ = Command::new("kill").args(["-KILL", &pid]).status();
             bail!(
                 "{:?} still running after {timeout:?}: killed",
                 command.get_program()
-            );
+            )
         }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let joined = |h: std::thread::JoinHandle<Vec<u8>>| h.join().unwrap_or_default();
-    Ok(std::process::Output {
-        status,
-        stdout: joined(stdout),
-        stderr: joined(stderr),
-    })
+    }
 }
 
 /// A child process and what it says.
@@ -207,5 +188,24 @@ impl Drop for ChildProcess {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tool_is_heard_out_or_killed_at_its_limit() -> Result<()> {
+        let out = output_within(
+            Command::new("sh").args(["-c", "echo out; echo err >&2"]),
+            TOOL_LIMIT,
+        )?;
+        assert!(out.status.success());
+        assert_eq!((&out.stdout[..], &out.stderr[..]), (&b"out\n"[..], &b"err\n"[..]));
+        let hung = output_within(Command::new("sleep").arg("600"), Duration::from_millis(200));
+        let message = hung.expect_err("killed at its limit").to_string();
+        assert!(message.contains("still running"), "{message}");
+        Ok(())
     }
 }

@@ -24,7 +24,7 @@ use rangegp_service::map::aggregate::world::WorldParams;
 use rangegp_service::map::{query, MapSnapshot};
 use rangegp_sim::path::Path;
 use rangegp_tests::child::{self, ChildProcess};
-use rangegp_tests::{unique_id, world, WAIT};
+use rangegp_tests::{unique_id, world, TempDir, WAIT};
 use rangegp_transport::{reserve_loopback_endpoint, zenoh_config};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -43,15 +43,15 @@ fn child_daemon() -> Result<()> {
     }
 }
 
-/// Writes `config` to a file of its own, starts a child daemon on it and removes the file once
-/// the child has read it (or failed to come up), so that runs leave nothing behind.
+/// Writes `config` to a file of its own and starts a child daemon on it (the file goes with its
+/// directory once the child has read it, or failed to).
 fn spawn_daemon(config: &Config) -> Result<ChildProcess> {
-    let path = std::env::temp_dir().join(format!("{}.toml", unique_id("fleet")));
+    let dir = TempDir::new("fleet")?;
+    let path = dir.path().join("rangegpd.toml");
     std::fs::write(&path, toml::to_string(config)?)?;
-    let started = ChildProcess::spawn("child_daemon", &path.display().to_string())
-        .and_then(|mut child| child.expect("ready", WAIT).map(|_| child));
-    std::fs::remove_file(&path)?;
-    started
+    let mut child = ChildProcess::spawn("child_daemon", &path.display().to_string())?;
+    child.expect("ready", WAIT)?;
+    Ok(child)
 }
 
 fn client(map_id: &str, router: &str) -> Result<Client> {

@@ -12,14 +12,45 @@ use rangegp_tests::child::{output_within, ChildProcess, TOOL_LIMIT};
 use rangegp_tests::pyenv::venv_python;
 use rangegp_tests::{Harness, WAIT};
 use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Output};
+
+/// The Python examples' directory.
+fn examples() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/python")
+}
+
+/// Runs the planner-side example `script` against `h`'s daemon (its endpoint, map id and the
+/// tests' timeout, then `args`); its output, once it has succeeded.
+fn planner_example(python: &Path, script: &str, h: &Harness, args: &[&str]) -> anyhow::Result<Output> {
+    let timeout = WAIT.as_secs().to_string();
+    let out = output_within(
+        Command::new(python)
+            .arg(examples().join(script))
+            .args([
+                "--connect",
+                &h.endpoint,
+                "--map-id",
+                &h.config.map_id,
+                "--timeout",
+                &timeout,
+            ])
+            .args(args),
+        TOOL_LIMIT,
+    )?;
+    anyhow::ensure!(
+        out.status.success(),
+        "{script} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(out)
+}
 
 #[test]
 fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()> {
     let Some(python) = venv_python()? else {
         return Ok(());
     };
-    let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/python");
+    let examples = examples();
     let h = Harness::start(|_| {})?;
 
     // The publisher holds its sample until the daemon has it (a sample vanishes with its
@@ -43,25 +74,7 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     anyhow::ensure!(publisher.wait_exit(WAIT)?, "publish_scan.py failed");
 
     // Ahead of the sensor (observed) and far away (not observed).
-    let out = output_within(
-        Command::new(&python)
-            .arg(examples.join("query_elevation.py"))
-            .args([
-                "--connect",
-                &h.endpoint,
-                "--map-id",
-                &h.config.map_id,
-                "--timeout",
-            ])
-            .arg(WAIT.as_secs().to_string())
-            .args(["7.0", "1.0", "40.0", "40.0"]),
-        TOOL_LIMIT,
-    )?;
-    anyhow::ensure!(
-        out.status.success(),
-        "query_elevation.py failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = planner_example(&python, "query_elevation.py", &h, &["7.0", "1.0", "40.0", "40.0"])?;
     let reply: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     let items = reply["items"].as_array().expect("items");
     assert_eq!(items.len(), 2);
@@ -74,26 +87,14 @@ fn python_publisher_and_python_planner_talk_to_the_daemon() -> anyhow::Result<()
     assert!(items[1]["z_m"].is_null());
 
     // A path over the cost layer of the flat ground ahead of the sensor.
-    let out = output_within(
-        Command::new(&python)
-            .arg(examples.join("plan_path.py"))
-            .args([
-                "--connect",
-                &h.endpoint,
-                "--map-id",
-                &h.config.map_id,
-                "--timeout",
-            ])
-            .arg(WAIT.as_secs().to_string())
-            .args(["--bbox", "4", "-2", "10", "4", "--res", "0.1"])
-            .args(["--start", "5", "0", "--goal", "9", "2"]),
-        TOOL_LIMIT,
+    let out = planner_example(
+        &python,
+        "plan_path.py",
+        &h,
+        &[
+            "--bbox", "4", "-2", "10", "4", "--res", "0.1", "--start", "5", "0", "--goal", "9", "2",
+        ],
     )?;
-    anyhow::ensure!(
-        out.status.success(),
-        "plan_path.py failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let plan: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     let path = plan["path_m"].as_array().expect("a path");
     let (first, last) = (&path[0], &path[path.len() - 1]);
