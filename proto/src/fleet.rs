@@ -161,7 +161,9 @@ pub struct FleetInfo {
     /// Site: tile messages refused (bad bytes, another version or geometry, older than held).
     pub tiles_refused: u64,
     /// Site: tile messages dropped because the assembler's queue was full (the storage keeps
-    /// them: a restart of the site recovers them).
+    /// them: a restart of the site recovers them). Robot: tiles that left its radius whose unsent
+    /// change was forgotten (more than `fleet.max_held_departed_tiles` waited with no page on
+    /// disk, or a page could not be read back).
     pub tiles_dropped: u64,
     /// Site: the robots whose tiles it holds.
     pub robots: Vec<RobotTiles>,

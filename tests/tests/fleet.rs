@@ -8,6 +8,9 @@
 //! - A fleet query (`rangegp/*`) hears every robot, and fuses by inverse variance.
 //! - Robot 2 killed (SIGKILL): the site still answers its ground, and says it is not alive.
 //! - The site killed and restarted: it answers the same values, from the storage alone.
+//!
+//! A second test keeps two robots off their site (nothing subscribes to its tiles) and checks
+//! that departed tiles wait within `fleet.max_held_departed_tiles`.
 
 use anyhow::{ensure, Context, Result};
 use rangegp_client::{Client, ScanPublisher};
@@ -341,5 +344,133 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         "bad tile messages changed the site's answers"
     );
     drop(site_daemon);
+    Ok(())
+}
+
+/// A robot whose site is unreachable holds departed tiles' unsent cells only up to
+/// `fleet.max_held_departed_tiles` (checkpoints off, so no page holds them): two robots drive
+/// the same path with no subscriber to the site's tiles, one with room for every departed tile
+/// and one with room for three. When a subscriber appears, the bounded robot sends some of the
+/// other's tiles and no other, having counted at least as many changes forgotten as it misses
+/// (which are its oldest: a unit test in `fleet::publish`).
+#[test]
+fn a_robot_off_its_site_holds_departed_tiles_within_its_bound() -> Result<()> {
+    let reserved = reserve_loopback_endpoint()?;
+    let endpoint = reserved.endpoint().to_owned();
+    drop(reserved);
+    let router = zenoh::open(zenoh_config(
+        "router",
+        std::slice::from_ref(&endpoint),
+        &[],
+        false,
+    )?)
+    .wait()
+    .map_err(|e| anyhow::anyhow!("router: {e}"))?;
+    let site_id = unique_id("site");
+    let site_keys = MapKeys::new(&site_id)?;
+
+    let mut robots = Vec::new();
+    for (name, bound) in [("roomy", 100_000), ("tight", 3)] {
+        let id = unique_id(name);
+        let mut c = daemon_config(&id, &endpoint);
+        c.ingest.service_name = format!("rangegp/{}/scans", unique_id("svc"));
+        c.fleet.site = site_id.clone();
+        c.fleet.tile_period_ms = 100;
+        c.fleet.max_held_departed_tiles = bound;
+        c.aggregate.radius_m = 4.0;
+        let daemon = Daemon::builder(c.clone()).start()?;
+        robots.push((id.clone(), c, daemon, client(&id, &endpoint)?));
+    }
+    let mut w = world(12, 14);
+    w.path = Path {
+        waypoints: (0..14).map(|i| [-7.0 + i as f64, 0.0, 0.0]).collect(),
+    };
+    for (_, c, _, robot) in &robots {
+        let mut publisher = ScanPublisher::new(&c.scan_service_name(), 1, 4096)?;
+        for i in 0..14 {
+            let scan = w.scan(i, now_ns());
+            let before = robot.status()?.aggregate.inserts;
+            publisher.publish(scan.header, &scan.points)?;
+            wait_for("the scan fused", || {
+                Ok((robot.status()?.aggregate.inserts > before).then_some(()))
+            })?;
+        }
+    }
+    // Tiles have left both radii (the tight robot forgot some), and none was sent.
+    wait_for("the tight robot forgetting", || {
+        Ok((robots[1].3.status()?.fleet.tiles_dropped > 0).then_some(()))
+    })?;
+    for (id, _, _, robot) in &robots {
+        let f = robot.status()?.fleet;
+        ensure!(
+            f.tiles_published == 0,
+            "{id} published {} tiles to no one",
+            f.tiles_published
+        );
+    }
+    ensure!(
+        robots[0].3.status()?.fleet.tiles_dropped == 0,
+        "the roomy robot forgot tiles"
+    );
+
+    // A subscriber appears: every robot sends what it holds.
+    let received = Arc::new(std::sync::Mutex::new(Vec::<(String, (i32, i32))>::new()));
+    let sink = Arc::clone(&received);
+    let keys = site_keys.clone();
+    let _subscriber = router
+        .declare_subscriber(rangegp_proto::fleet::site_tiles(&site_keys))
+        .callback(move |sample| {
+            if let Some(key) = parse_tile_key(&keys, sample.key_expr().as_str()) {
+                sink.lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .push(key);
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("subscriber: {e}"))?;
+    for (id, _, _, robot) in &robots {
+        wait_for("every waiting tile sent", || {
+            let f = robot.status()?.fleet;
+            Ok((f.tiles_published > 0 && f.tiles_pending == 0).then_some(()))
+        })
+        .with_context(|| id.clone())?;
+    }
+    let mut published = 0;
+    for (_, _, _, robot) in &robots {
+        published += robot.status()?.fleet.tiles_published;
+    }
+    wait_for("every put received", || {
+        let n = received
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .len() as u64;
+        Ok((n >= published).then_some(()))
+    })?;
+    // Read once every departure was taken: the scans were fused before the sends began.
+    let dropped = robots[1].3.status()?.fleet.tiles_dropped;
+    let got = received
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .clone();
+    let tiles_of = |id: &str| -> std::collections::BTreeSet<(i32, i32)> {
+        got.iter().filter(|(r, _)| r == id).map(|&(_, k)| k).collect()
+    };
+    let (roomy, tight) = (tiles_of(&robots[0].0), tiles_of(&robots[1].0));
+    println!(
+        "roomy robot sent {} tiles, tight robot {} and forgot {dropped} changes",
+        roomy.len(),
+        tight.len()
+    );
+    ensure!(
+        tight.is_subset(&roomy),
+        "the tight robot sent tiles the roomy one did not"
+    );
+    // A tile beyond the 4 m radius departs again with each scan that reaches it (the sensor
+    // sees 10 m), so the count of forgotten changes may exceed the tiles missing.
+    let missing = roomy.difference(&tight).count() as u64;
+    ensure!(
+        missing > 0 && dropped >= missing,
+        "{missing} tiles missing, {dropped} changes counted forgotten"
+    );
     Ok(())
 }

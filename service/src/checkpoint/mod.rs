@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 pub use format::{decode, encode, FormatError};
-pub use pages::{PageError, PageStore};
+pub use pages::{PageError, PageReader, PageStore};
 pub use store::{Restored, Store, StoreError};
 
 /// What one checkpoint holds.

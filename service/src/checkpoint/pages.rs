@@ -116,12 +116,16 @@ impl PageStore {
 
     /// Reads the page of tile `key`.
     pub fn read(&self, key: (i32, i32)) -> Result<TilePage, PageError> {
-        let path = self.path(key);
-        let bytes = fs::read(&path).map_err(|source| PageError::Io {
-            path: path.clone(),
-            source,
-        })?;
-        decode_framed(PAGE_MAGIC, &bytes, self.identity).map_err(|source| PageError::Format { path, source })
+        self.reader().read(key)
+    }
+
+    /// A handle that reads this store's pages from another thread (a page is replaced by an
+    /// atomic rename, so a reader sees the old page or the new one, never a mix).
+    pub fn reader(&self) -> PageReader {
+        PageReader {
+            dir: self.dir.clone(),
+            identity: self.identity,
+        }
     }
 
     /// Removes every page under `dir` (the deliberate reset); returns how many.
@@ -152,9 +156,33 @@ impl PageStore {
         Ok(removed)
     }
 
-    fn path(&self, (i, j): (i32, i32)) -> PathBuf {
-        self.dir.join(format!("tile_{i}_{j}{SUFFIX}"))
+    fn path(&self, key: (i32, i32)) -> PathBuf {
+        path_in(&self.dir, key)
     }
+}
+
+/// Reads the pages of one map; the fleet publisher's way to a departed tile's cells.
+#[derive(Debug, Clone)]
+pub struct PageReader {
+    dir: PathBuf,
+    identity: u64,
+}
+
+impl PageReader {
+    /// Reads the page of tile `key`.
+    pub fn read(&self, key: (i32, i32)) -> Result<TilePage, PageError> {
+        let path = path_in(&self.dir, key);
+        let bytes = fs::read(&path).map_err(|source| PageError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        decode_framed(PAGE_MAGIC, &bytes, self.identity).map_err(|source| PageError::Format { path, source })
+    }
+}
+
+/// The file of tile `(i, j)`'s page in the tiles directory `dir`.
+fn path_in(dir: &Path, (i, j): (i32, i32)) -> PathBuf {
+    dir.join(format!("tile_{i}_{j}{SUFFIX}"))
 }
 
 /// The tile key a page's file name carries (`tile_<i>_<j>.page`).

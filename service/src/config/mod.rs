@@ -252,6 +252,12 @@ mod tests {
         assert_eq!(field("[ingest]\nqueue_len = 1000000000000"), "ingest.queue_len");
         assert_eq!(field("[query]\nmax_batch = 1000000000000"), "query.max_batch");
         assert_eq!(field("[query]\nthreads = 100000"), "query.threads");
+        for held in ["0", "2000000"] {
+            assert_eq!(
+                field(&format!("[fleet]\nmax_held_departed_tiles = {held}")),
+                "fleet.max_held_departed_tiles"
+            );
+        }
         assert_eq!(
             field("[zenoh]\nlisten = [\"not an endpoint\"]"),
             "zenoh.listen / zenoh.connect"

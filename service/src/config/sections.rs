@@ -21,6 +21,10 @@ pub struct FleetConfig {
     /// Robot: tile bytes published per second at most, KiB; tiles beyond wait for the next period,
     /// oldest change first.
     pub max_kib_per_s: u64,
+    /// Robot: tiles that left its radius with an unsent change and no page on disk (checkpoints
+    /// off) wait with their cells, at most this many (about 3 KiB each); beyond, the oldest
+    /// change is forgotten and counted (`status.fleet.tiles_dropped`).
+    pub max_held_departed_tiles: u64,
     /// Site: how long the start waits for the storage's tiles, milliseconds.
     pub storage_wait_ms: u64,
 }
@@ -32,6 +36,7 @@ impl Default for FleetConfig {
             site: String::new(),
             tile_period_ms: 1000,
             max_kib_per_s: 512,
+            max_held_departed_tiles: 16_384,
             storage_wait_ms: 3000,
         }
     }

@@ -16,6 +16,8 @@ const MAX_WINDOW: usize = 256;
 const MAX_BATCH: usize = 1 << 22;
 /// Most query threads (each one a thread started at once).
 const MAX_QUERY_THREADS: usize = 64;
+/// Most departed tiles a robot may hold for its site (about 3 KiB each: 3 GiB at most).
+const MAX_HELD_DEPARTED: u64 = 1 << 20;
 
 impl Config {
     /// Checks every value's domain; the error names the first field out of it.
@@ -38,7 +40,7 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 42] = [
+        let checks: [(bool, &'static str, &str); 43] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
@@ -58,6 +60,11 @@ impl Config {
                 self.fleet.max_kib_per_s > 0 && self.fleet.storage_wait_ms <= 600_000,
                 "fleet.max_kib_per_s / fleet.storage_wait_ms",
                 "must be positive / at most 600000",
+            ),
+            (
+                (1..=MAX_HELD_DEPARTED).contains(&self.fleet.max_held_departed_tiles),
+                "fleet.max_held_departed_tiles",
+                "must be 1 to 1 048 576",
             ),
             (
                 service_ok,

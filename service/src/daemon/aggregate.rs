@@ -127,8 +127,20 @@ pub(super) fn aggregate_loop(
         let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
         if let Some(store) = &kept.pages {
+            // The radius around the newest sensor, and every tile a scan of the batch may fuse
+            // into: a tile beyond the radius (a radius shorter than the reach, or the robot moved
+            // within the batch) must come back before it is fused, or its page would be
+            // replaced by the new cells alone when it is evicted again.
             let s = newest.pose.translation.vector;
-            page_in(store, &mut next, (s.x, s.y), radius_m, &pool, m);
+            let mut discs = vec![(s.x, s.y, radius_m)];
+            let params = world.params();
+            let tile_reach =
+                reach_m + params.tile_cells as f64 * params.cell_m * std::f64::consts::FRAC_1_SQRT_2;
+            discs.extend(batch.iter().map(|(scan, _)| {
+                let p = scan.pose.translation.vector;
+                (p.x, p.y, tile_reach)
+            }));
+            page_in(store, &mut next, &discs, &pool, m);
         }
         // Maps fitted before a correction this aggregate reflects are moved by it first.
         let maps = generation.bring_up(state, batch.iter().map(|(_, map)| map));
@@ -154,12 +166,14 @@ pub(super) fn aggregate_loop(
                 m.ledger_bytes
                     .store(kept.ledger.bytes() as u64, Ordering::Relaxed);
                 let evicted = inserted.evicted;
+                // Out of the published map only once its successor is ready: write them first,
+                // then hand them to the tile publisher, which reads back those on disk.
+                let on_disk = match &mut kept.pages {
+                    Some(store) => page_out(store, &evicted, m),
+                    None => vec![false; evicted.len()],
+                };
                 if let Some(departures) = &kept.departures {
-                    departures.push(&evicted);
-                }
-                // Out of the published map only once its successor is ready: write them first.
-                if let Some(store) = &mut kept.pages {
-                    page_out(store, &evicted, m);
+                    departures.push(&evicted, &on_disk);
                 }
                 let evicted = evicted.len();
                 world = Arc::new(next);
@@ -219,14 +233,13 @@ fn announce_changes(
     super::publish_event(publisher, &event, "change event");
 }
 
-/// Brings back the tiles on disk within `radius_m` of `at` that `world` does not hold, before
-/// the scans near them are fused. A page that cannot be read is counted and logged and stays on
+/// Brings back the tiles on disk whose centre lies within one of the `discs` (x, y, radius,
+/// metres) that `world` does not hold, before the scans near them are fused. A page that cannot be read is counted and logged and stays on
 /// disk; the tile starts anew from the scans.
 fn page_in(
     store: &PageStore,
     world: &mut WorldAggregate,
-    at: (f64, f64),
-    radius_m: f64,
+    discs: &[(f64, f64, f64)],
     pool: &rayon::ThreadPool,
     m: &Metrics,
 ) {
@@ -234,7 +247,7 @@ fn page_in(
         .keys()
         .iter()
         .copied()
-        .filter(|&k| !world.has_tile(k) && world.tile_distance(k, at.0, at.1) <= radius_m)
+        .filter(|&k| !world.has_tile(k) && discs.iter().any(|&(x, y, r)| world.tile_distance(k, x, y) <= r))
         .collect();
     if wanted.is_empty() {
         return;
@@ -264,13 +277,15 @@ fn page_in(
     }
 }
 
-/// Writes the tiles that left the radius to disk; a failure is counted and logged (that tile
-/// is then forgotten, as without a site map).
-fn page_out(store: &mut PageStore, evicted: &[TilePage], m: &Metrics) {
-    for page in evicted {
-        match store.write(page) {
+/// Writes the tiles that left the radius to disk, saying which were written; a failure is
+/// counted and logged (that tile is then forgotten, as without a site map).
+fn page_out(store: &mut PageStore, evicted: &[TilePage], m: &Metrics) -> Vec<bool> {
+    evicted
+        .iter()
+        .map(|page| match store.write(page) {
             Ok(()) => {
                 m.aggregate_paged_out.fetch_add(1, Ordering::Relaxed);
+                true
             }
             Err(e) => {
                 m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
@@ -279,9 +294,10 @@ fn page_out(store: &mut PageStore, evicted: &[TilePage], m: &Metrics) {
                     error = e,
                     "a tile leaving the radius cannot be written; it is forgotten"
                 );
+                false
             }
-        }
-    }
+        })
+        .collect()
 }
 
 #[cfg(test)]

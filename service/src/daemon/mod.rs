@@ -197,6 +197,7 @@ impl DaemonBuilder {
         };
 
         let mut tiles = None;
+        let mut page_reader = None;
         let aggregate_feed = if config.aggregate.enabled {
             let feed = Arc::new(LatestQueue::new(config.aggregate.queue_len));
             let (rx, state, shutdown) = (Arc::clone(&feed), Arc::clone(&state), shutdown.clone());
@@ -232,6 +233,7 @@ impl DaemonBuilder {
                 tiles = Some((site, Arc::clone(&departures)));
                 departures
             });
+            page_reader = pages.as_ref().map(PageStore::reader);
             let kept = Kept {
                 pages,
                 ledger: Ledger::new(config.aggregate.ledger_mib << 20),
@@ -295,6 +297,9 @@ impl DaemonBuilder {
                 site,
                 period: Duration::from_millis(config.fleet.tile_period_ms),
                 max_bytes_per_s: config.fleet.max_kib_per_s << 10,
+                pages: page_reader,
+                max_held_departed: usize::try_from(config.fleet.max_held_departed_tiles)
+                    .unwrap_or(usize::MAX),
             };
             let (session, state, shutdown) = (session.clone(), Arc::clone(&state), shutdown.clone());
             daemon.fleet = Some(Fleet {

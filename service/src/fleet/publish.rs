@@ -1,8 +1,12 @@
 //! A robot's tiles into its site's key space: every period, the aggregate tiles whose cells
 //! changed since they were last sent (each tile's cells hashed and compared with what was sent),
 //! oldest change first, within a byte budget; tiles that leave the robot's radius are sent
-//! from their pages if their last change was not.
+//! from their pages if their last change was not. A departed tile waits as a key when its page
+//! is on disk (read back when it goes), else with its cells, at most
+//! [`TileSettings::max_held_departed`] of them: a robot off its site's network for hours holds
+//! bounded memory, and counts what it had to forget.
 
+use crate::checkpoint::PageReader;
 use crate::map::aggregate::world::{Cell, TileCells, TilePage, WorldAggregate};
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
@@ -28,39 +32,131 @@ pub struct TileSettings {
     pub period: Duration,
     /// Bytes per second at most.
     pub max_bytes_per_s: u64,
+    /// The aggregate's pages on disk (with checkpoints), where departed tiles are read back.
+    pub pages: Option<PageReader>,
+    /// Departed tiles with no page that may wait with their cells; beyond, the oldest change is
+    /// forgotten (`fleet.max_held_departed_tiles`).
+    pub max_held_departed: usize,
 }
+
+/// A tile that left the robot's radius, and whether its page is on disk.
+type Departure = (TilePage, bool);
 
 /// Tiles that left the robot's radius, handed over by the aggregate thread.
 #[derive(Debug, Default)]
-pub struct Departures(Mutex<Vec<TilePage>>);
+pub struct Departures(Mutex<Vec<Departure>>);
 
 impl Departures {
-    /// Hands `pages` over (their cells are sent if they changed since last sent).
-    pub fn push(&self, pages: &[TilePage]) {
+    /// Hands `pages` over (their cells are sent if they changed since last sent); `on_disk[k]`
+    /// says whether `pages[k]` was written to the page store.
+    pub fn push(&self, pages: &[TilePage], on_disk: &[bool]) {
+        let on_disk = on_disk.iter().copied().chain(std::iter::repeat(false));
         self.0
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .extend(pages.iter().cloned());
+            .extend(pages.iter().cloned().zip(on_disk));
     }
 
-    fn take(&self) -> Vec<TilePage> {
+    fn take(&self) -> Vec<Departure> {
         std::mem::take(&mut *self.0.lock().unwrap_or_else(PoisonError::into_inner))
     }
 }
 
+/// Where a waiting tile's cells are.
+#[derive(Debug, Clone)]
+enum Waiting {
+    /// In the published aggregate.
+    InWorld,
+    /// It left the radius; its page on disk holds them.
+    OnPage,
+    /// It left the radius with no page; held here.
+    Held(TileCells),
+}
+
 /// The publisher's memory: per tile what was sent, and the changes waiting.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct TileLedger {
     /// Per tile, the hash of the cells last sent.
     sent: HashMap<(i32, i32), u64>,
-    /// Waiting tiles and since when, with their cells when they left the radius.
-    pending: BTreeMap<(i32, i32), (Instant, Option<TileCells>)>,
+    /// Waiting tiles, since when, and where their cells are.
+    pending: BTreeMap<(i32, i32), (Instant, Waiting)>,
+    /// Where departed tiles' pages are read back, if anywhere.
+    pages: Option<PageReader>,
+    /// Departed tiles held with their cells at most.
+    max_held: usize,
+    /// Departed tiles held with their cells now.
+    held: usize,
+    /// Departed tiles whose unsent change was forgotten: over `max_held`, or a page unreadable.
+    forgotten: u64,
 }
 
 impl TileLedger {
+    /// A ledger with nothing sent; departed tiles are read back from `pages` when on disk, and
+    /// at most `max_held` others wait with their cells.
+    pub fn new(pages: Option<PageReader>, max_held: usize) -> Self {
+        Self {
+            sent: HashMap::new(),
+            pending: BTreeMap::new(),
+            pages,
+            max_held,
+            held: 0,
+            forgotten: 0,
+        }
+    }
+
+    /// Departed tiles whose unsent change was forgotten since start.
+    pub fn forgotten(&self) -> u64 {
+        self.forgotten
+    }
+
+    /// Departed tiles waiting with their cells in memory.
+    pub fn held(&self) -> usize {
+        self.held
+    }
+
+    /// Sets where `key` waits from (keeping since when, if it waited already).
+    fn wait(&mut self, key: (i32, i32), waiting: Waiting, now: Instant) {
+        let slot = self.pending.entry(key).or_insert((now, Waiting::InWorld));
+        self.held -= usize::from(matches!(slot.1, Waiting::Held(_)));
+        self.held += usize::from(matches!(waiting, Waiting::Held(_)));
+        slot.1 = waiting;
+    }
+
+    /// Takes `key` out of the waiting tiles.
+    fn unwait(&mut self, key: (i32, i32)) -> Option<(Instant, Waiting)> {
+        let out = self.pending.remove(&key);
+        self.held -= usize::from(matches!(out, Some((_, Waiting::Held(_)))));
+        out
+    }
+
+    /// Forgets the oldest held departed tiles beyond `max_held`.
+    fn bound_held(&mut self) {
+        if self.held <= self.max_held {
+            return;
+        }
+        let mut held: Vec<((i32, i32), Instant)> = self
+            .pending
+            .iter()
+            .filter(|(_, (_, w))| matches!(w, Waiting::Held(_)))
+            .map(|(&k, &(t, _))| (k, t))
+            .collect();
+        held.sort_by_key(|&(k, t)| (t, k));
+        let over = self.held - self.max_held;
+        for &(key, _) in &held[..over] {
+            self.unwait(key);
+        }
+        self.forgotten += over as u64;
+        warn!(
+            tiles = over,
+            held = self.held,
+            "departed tiles waiting for the site exceed fleet.max_held_departed_tiles and have no \
+             page on disk; their oldest unsent changes are forgotten"
+        );
+    }
+
     /// Notes the tiles of `world` whose cells differ from what was sent, and the departed
-    /// `pages` whose do.
-    pub fn scan(&mut self, world: &WorldAggregate, pages: Vec<TilePage>, now: Instant) {
+    /// `pages` whose do (each with whether its page is on disk).
+    pub fn scan(&mut self, world: &WorldAggregate, pages: Vec<Departure>, now: Instant) {
         // Every tile's cells, hashed (a few ms a second for a full radius): a fit's identity would
         // be cheaper, but a freed fit's address can come back for the next one.
         // A tile that owns no cell here is never sent: cells leave a robot's memory by eviction
@@ -68,14 +164,20 @@ impl TileLedger {
         for key in world.tile_keys().collect::<Vec<_>>() {
             let cells = world.tile_cells(key);
             if !cells.is_empty() && self.sent.get(&key).copied() != Some(hash(&cells)) {
-                self.pending.entry(key).or_insert((now, None)).1 = None;
+                self.wait(key, Waiting::InWorld, now);
             }
         }
-        for page in pages {
+        for (page, on_disk) in pages {
             if !page.cells.is_empty() && self.sent.get(&page.key).copied() != Some(hash(&page.cells)) {
-                self.pending.entry(page.key).or_insert((now, None)).1 = Some(page.cells);
+                let waiting = if on_disk && self.pages.is_some() {
+                    Waiting::OnPage
+                } else {
+                    Waiting::Held(page.cells)
+                };
+                self.wait(page.key, waiting, now);
             }
         }
+        self.bound_held();
     }
 
     /// Forgets what was sent, so that every tile goes again (the site's subscribers were
@@ -89,11 +191,13 @@ impl TileLedger {
         self.sent.insert(outgoing.key, outgoing.hash);
     }
 
-    /// Puts `outgoing` back among the waiting tiles (its put failed).
+    /// Puts `outgoing` back among the waiting tiles (its put failed), unless a newer change of
+    /// it waits already.
     pub fn retry(&mut self, outgoing: Outgoing, now: Instant) {
-        self.pending
-            .entry(outgoing.key)
-            .or_insert((now, outgoing.departed));
+        if !self.pending.contains_key(&outgoing.key) {
+            self.wait(outgoing.key, outgoing.departed, now);
+            self.bound_held();
+        }
     }
 
     /// Tiles waiting.
@@ -120,10 +224,26 @@ impl TileLedger {
             if spent >= budget && !out.is_empty() {
                 break;
             }
-            let Some((_, departed)) = self.pending.remove(&key) else {
+            let Some((_, departed)) = self.unwait(key) else {
                 continue;
             };
-            let cells = departed.clone().unwrap_or_else(|| world.tile_cells(key));
+            let cells = match &departed {
+                Waiting::InWorld => world.tile_cells(key),
+                Waiting::Held(cells) => cells.clone(),
+                Waiting::OnPage => match self.pages.as_ref().map(|p| p.read(key)) {
+                    Some(Ok(page)) => page.cells,
+                    Some(Err(e)) => {
+                        self.forgotten += 1;
+                        let e: &dyn std::error::Error = &e;
+                        warn!(
+                            error = e,
+                            "a departed tile's page cannot be read; its change is not sent"
+                        );
+                        continue;
+                    }
+                    None => continue,
+                },
+            };
             let update = TileUpdate {
                 version: PROTOCOL_VERSION,
                 robot: robot.to_owned(),
@@ -170,8 +290,8 @@ pub struct Outgoing {
     pub key: (i32, i32),
     /// Hash of its cells.
     hash: u64,
-    /// Its cells when it left the robot's radius (kept for a retry).
-    departed: Option<TileCells>,
+    /// Where its cells were (kept for a retry).
+    departed: Waiting,
     /// The message.
     pub update: TileUpdate,
     /// The message's bytes.
@@ -199,7 +319,7 @@ pub fn publish_loop(
     shutdown: &Shutdown,
 ) {
     let robot = state.keys.clone();
-    let mut ledger = TileLedger::default();
+    let mut ledger = TileLedger::new(settings.pages.clone(), settings.max_held_departed);
     let budget = (settings.max_bytes_per_s as f64 * settings.period.as_secs_f64()).ceil() as u64;
     let encoding = rangegp_transport::zenoh_encoding(Encoding::Bincode);
     // A publisher on a key under this robot's tiles that is never put to (no tile index parses
@@ -258,6 +378,7 @@ pub fn publish_loop(
         fleet.tiles_published += tiles;
         fleet.tile_bytes_published += bytes;
         fleet.tiles_pending = ledger.pending() as u64;
+        fleet.tiles_dropped = ledger.forgotten();
     }
 }
 
@@ -289,7 +410,7 @@ mod tests {
     #[test]
     fn only_changed_tiles_are_sent_oldest_first_within_the_budget() {
         let t0 = Instant::now();
-        let mut ledger = TileLedger::default();
+        let mut ledger = TileLedger::new(None, 16);
         let w = world_with(&[((1, 1), 0.1), ((15, 1), 0.2), ((31, 1), 0.3)]);
         ledger.scan(&w, Vec::new(), t0);
         // Tiles (0,0), (1,0), (3,0) own cells; tiles fitted to margin cells alone own none and
@@ -340,7 +461,7 @@ mod tests {
             points: Vec::new(),
             noise_var: Vec::new(),
         };
-        ledger.scan(&changed, vec![page, emptied], t0);
+        ledger.scan(&changed, vec![(page, false), (emptied, false)], t0);
         let sent = ledger.take(&changed, "r", u64::MAX, 9);
         assert_eq!(sent.len(), 1, "a page without cells is not a deletion");
         assert_eq!(sent[0].update.cells[0].z_m, 0.9);
@@ -349,5 +470,72 @@ mod tests {
         ledger.forget_sent();
         ledger.scan(&changed, Vec::new(), t0);
         assert_eq!(ledger.pending(), 3);
+    }
+
+    fn departed(key: (i32, i32), z: f64) -> TilePage {
+        TilePage {
+            key,
+            cells: vec![(
+                (key.0 * 10, key.1 * 10),
+                Cell {
+                    z,
+                    var: 1e-4,
+                    scans: 1,
+                },
+            )],
+            points: Vec::new(),
+            noise_var: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn departed_tiles_without_pages_are_held_up_to_the_bound_and_the_oldest_forgotten() {
+        let t0 = Instant::now();
+        let w = WorldAggregate::new(WorldParams::default());
+        let mut ledger = TileLedger::new(None, 3);
+        let early: Vec<Departure> = (0..2).map(|i| (departed((i, 0), 0.1), false)).collect();
+        ledger.scan(&w, early, t0);
+        assert_eq!((ledger.held(), ledger.forgotten()), (2, 0));
+        let later: Vec<Departure> = (2..5).map(|i| (departed((i, 0), 0.2), false)).collect();
+        ledger.scan(&w, later, t0 + Duration::from_secs(1));
+        assert_eq!(ledger.held(), 3, "held at the bound");
+        assert_eq!(ledger.forgotten(), 2, "the two oldest forgotten and counted");
+        let sent = ledger.take(&w, "r", u64::MAX, 1);
+        let keys: Vec<_> = sent.iter().map(|o| o.key).collect();
+        assert_eq!(keys, [(2, 0), (3, 0), (4, 0)], "the newest changes go");
+        assert_eq!(ledger.held(), 0);
+        // A failed put holds its cells again, within the bound.
+        for o in sent {
+            ledger.retry(o, t0);
+        }
+        assert_eq!((ledger.held(), ledger.pending()), (3, 3));
+    }
+
+    #[test]
+    fn departed_tiles_on_disk_wait_without_their_cells_and_are_read_back() {
+        let dir = std::env::temp_dir().join(format!("rangegp-departed-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut store = crate::checkpoint::PageStore::open(&dir, 11).expect("open");
+        let on_disk = departed((1, 2), 0.7);
+        store.write(&on_disk).expect("write");
+        let t0 = Instant::now();
+        let w = WorldAggregate::new(WorldParams::default());
+        let mut ledger = TileLedger::new(Some(store.reader()), 1);
+        // One tile on disk, one whose page could not be written: only the latter is held.
+        ledger.scan(&w, vec![(on_disk, true), (departed((3, 4), 0.3), false)], t0);
+        assert_eq!((ledger.pending(), ledger.held()), (2, 1));
+        let sent = ledger.take(&w, "r", u64::MAX, 1);
+        assert_eq!(sent.len(), 2);
+        assert_eq!(sent[0].update.cells[0].z_m, 0.7, "read back from its page");
+        assert_eq!(sent[1].update.cells[0].z_m, 0.3);
+        // A page gone by the time it is sent: counted forgotten, not sent.
+        for o in sent {
+            ledger.retry(o, t0);
+        }
+        std::fs::remove_dir_all(&dir).expect("remove");
+        let sent = ledger.take(&w, "r", u64::MAX, 2);
+        assert_eq!(sent.len(), 1);
+        assert_eq!(sent[0].key, (3, 4));
+        assert_eq!(ledger.forgotten(), 1);
     }
 }
