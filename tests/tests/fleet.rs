@@ -22,7 +22,7 @@ use rangegp_proto::keys::MapKeys;
 use rangegp_proto::msg::Source;
 use rangegp_service::config::Config;
 use rangegp_service::daemon::Daemon;
-use rangegp_service::fleet::site_map::SiteMap;
+use rangegp_service::fleet::site_map::{SiteLimits, SiteMap};
 use rangegp_service::map::aggregate::world::WorldParams;
 use rangegp_service::map::{query, MapSnapshot};
 use rangegp_sim::path::Path;
@@ -94,7 +94,13 @@ fn stored(router: &StorageRouter, site: &MapKeys) -> Result<Vec<TileUpdate>> {
 
 /// What a site map of `tiles` answers at `points` (z, variance), through the daemon's query code.
 fn expected(tiles: Vec<TileUpdate>, points: &[[f64; 2]]) -> Result<Vec<Option<(f64, f64)>>> {
-    let mut site = SiteMap::new(WorldParams::default());
+    let mut site = SiteMap::new(
+        WorldParams::default(),
+        SiteLimits {
+            robots: usize::MAX,
+            tiles: usize::MAX,
+        },
+    );
     let refused = site.offer(tiles).map_err(|(e, _)| e)?;
     ensure!(refused.is_empty(), "stored tiles refused: {refused:?}");
     let snapshot = MapSnapshot::new(Vec::new(), Some(Arc::new(site.world().clone())))
@@ -132,6 +138,8 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
 
     let mut site_config = daemon_config(&site_id, &endpoint);
     site_config.fleet.role = FleetRole::Site;
+    // Room for the three robots and no fourth (checked at the end).
+    site_config.fleet.max_site_robots = 3;
     let mut site_daemon = spawn_daemon(&site_config)?;
     let site = client(&site_id, &endpoint)?;
 
@@ -325,20 +333,37 @@ fn three_robots_one_site_through_a_zenoh_storage() -> Result<()> {
         status.fleet.robots.len()
     );
 
-    // Tile messages no robot sends: 1 MiB (over any valid tile: refused unread) and a few
-    // undecodable bytes. Both refused and counted; the site answers as before.
+    // Tile messages no robot sends: 1 MiB (over any valid tile: refused unread), a few
+    // undecodable bytes, and a valid tile from a fourth robot, beyond the site's room for
+    // three. All refused and counted; the site answers as before and lists three robots.
     let config = zenoh_config("client", &[], std::slice::from_ref(&endpoint), false)?;
     let peer = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("{e}"))?;
     let key = tile_key(&site_keys, &MapKeys::new(&ids[0])?, (0, 0));
-    for payload in [vec![0u8; 1 << 20], vec![0xff; 16]] {
-        peer.put(&key, payload)
+    let mut fourth = tiles[0].clone();
+    fourth.robot = unique_id("robot4");
+    let fourth_key = tile_key(
+        &site_keys,
+        &MapKeys::new(&fourth.robot)?,
+        (fourth.tile_column, fourth.tile_row),
+    );
+    let fourth_bytes = rangegp_proto::codec::encode(Encoding::Bincode, &fourth)?;
+    for (key, payload) in [
+        (&key, vec![0u8; 1 << 20]),
+        (&key, vec![0xff; 16]),
+        (&fourth_key, fourth_bytes),
+    ] {
+        peer.put(key, payload)
             .wait()
             .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     let refused_before = status.fleet.tiles_refused;
-    wait_for("both bad tile messages refused", || {
-        Ok((site.status()?.fleet.tiles_refused >= refused_before + 2).then_some(()))
+    wait_for("the three tile messages refused", || {
+        Ok((site.status()?.fleet.tiles_refused >= refused_before + 3).then_some(()))
     })?;
+    ensure!(
+        site.status()?.fleet.robots.len() == 3,
+        "the site took a fourth robot beyond its limit"
+    );
     ensure!(
         answers_equal(&site, &points, &want)?,
         "bad tile messages changed the site's answers"

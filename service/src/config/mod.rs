@@ -252,6 +252,12 @@ mod tests {
         assert_eq!(field("[ingest]\nqueue_len = 1000000000000"), "ingest.queue_len");
         assert_eq!(field("[query]\nmax_batch = 1000000000000"), "query.max_batch");
         assert_eq!(field("[query]\nthreads = 100000"), "query.threads");
+        for (field_name, value) in [("max_site_robots", "0"), ("max_site_tiles", "100000000")] {
+            assert_eq!(
+                field(&format!("[fleet]\n{field_name} = {value}")),
+                "fleet.max_site_robots / fleet.max_site_tiles"
+            );
+        }
         for held in ["0", "2000000"] {
             assert_eq!(
                 field(&format!("[fleet]\nmax_held_departed_tiles = {held}")),

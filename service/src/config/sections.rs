@@ -27,6 +27,13 @@ pub struct FleetConfig {
     pub max_held_departed_tiles: u64,
     /// Site: how long the start waits for the storage's tiles, milliseconds.
     pub storage_wait_ms: u64,
+    /// Site: robots it holds tiles of at most; a new robot's tiles beyond are refused and counted
+    /// (`status.fleet.tiles_refused`).
+    pub max_site_robots: u64,
+    /// Site: tiles it holds at most, summed over robots (about 3 KiB each, and about 0.15 MB for
+    /// each distinct tile's fitted expert); new tiles beyond are refused and counted, updates of
+    /// held ones still go in.
+    pub max_site_tiles: u64,
 }
 
 impl Default for FleetConfig {
@@ -38,6 +45,8 @@ impl Default for FleetConfig {
             max_kib_per_s: 512,
             max_held_departed_tiles: 16_384,
             storage_wait_ms: 3000,
+            max_site_robots: 256,
+            max_site_tiles: 65_536,
         }
     }
 }

@@ -18,6 +18,10 @@ const MAX_BATCH: usize = 1 << 22;
 const MAX_QUERY_THREADS: usize = 64;
 /// Most departed tiles a robot may hold for its site (about 3 KiB each: 3 GiB at most).
 const MAX_HELD_DEPARTED: u64 = 1 << 20;
+/// Most robots a site may hold.
+const MAX_SITE_ROBOTS: u64 = 1 << 16;
+/// Most tiles a site may hold over all robots (at 3 KiB each, 48 GiB: beyond any machine it runs on).
+const MAX_SITE_TILES: u64 = 1 << 24;
 
 impl Config {
     /// Checks every value's domain; the error names the first field out of it.
@@ -40,7 +44,7 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 43] = [
+        let checks: [(bool, &'static str, &str); 44] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
@@ -65,6 +69,12 @@ impl Config {
                 (1..=MAX_HELD_DEPARTED).contains(&self.fleet.max_held_departed_tiles),
                 "fleet.max_held_departed_tiles",
                 "must be 1 to 1 048 576",
+            ),
+            (
+                (1..=MAX_SITE_ROBOTS).contains(&self.fleet.max_site_robots)
+                    && (1..=MAX_SITE_TILES).contains(&self.fleet.max_site_tiles),
+                "fleet.max_site_robots / fleet.max_site_tiles",
+                "must be 1 to 65 536 / 1 to 16 777 216",
             ),
             (
                 service_ok,

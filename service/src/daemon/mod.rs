@@ -15,6 +15,7 @@ use crate::config::{Config, ConfigError};
 use crate::exporter::Exporter;
 use crate::fleet::assemble::{self, SiteSettings};
 use crate::fleet::publish::{self, Departures, TileSettings};
+use crate::fleet::site_map::SiteLimits;
 use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue};
 use crate::map::aggregate::ledger::Ledger;
@@ -442,6 +443,10 @@ impl Daemon {
             site,
             storage_wait: Duration::from_millis(config.fleet.storage_wait_ms),
             params,
+            limits: SiteLimits {
+                robots: usize::try_from(config.fleet.max_site_robots).unwrap_or(usize::MAX),
+                tiles: usize::try_from(config.fleet.max_site_tiles).unwrap_or(usize::MAX),
+            },
         };
         let shutdown = self.shutdown.clone();
         // Everything stored first: once its queryables are declared, the site answers all of it.

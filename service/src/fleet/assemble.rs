@@ -1,7 +1,7 @@
 //! The site daemon's assembler thread: the storage's tiles at start, then every robot's tiles
 //! as they are published, into the [`SiteMap`] whose aggregate the site's queries answer from.
 
-use super::site_map::SiteMap;
+use super::site_map::{SiteLimits, SiteMap};
 use crate::map::aggregate::world::WorldParams;
 use crate::shutdown::Shutdown;
 use crate::state::DaemonState;
@@ -37,6 +37,8 @@ pub struct SiteSettings {
     pub storage_wait: Duration,
     /// The robots' aggregate geometry and experts.
     pub params: WorldParams,
+    /// How much the site holds at most.
+    pub limits: SiteLimits,
 }
 
 /// A tile message as received: its key and its bytes.
@@ -86,7 +88,7 @@ pub fn recover(
     settings: &SiteSettings,
     shutdown: &Shutdown,
 ) -> SiteMap {
-    let mut site = SiteMap::new(settings.params);
+    let mut site = SiteMap::new(settings.params, settings.limits);
     let (stored, answered) = from_storage(session, &settings.site, settings.storage_wait, shutdown);
     {
         let mut fleet = state.fleet.lock().unwrap_or_else(PoisonError::into_inner);

@@ -36,6 +36,25 @@ pub enum TileRefusal {
     /// The site holds a newer version of this tile.
     #[error("an older version of a tile the site holds")]
     Stale,
+    /// A new robot or a new tile beyond the site's limits ([`SiteLimits`]).
+    #[error("the site holds {held} {what}, its limit (fleet.max_site_{what})")]
+    Full {
+        /// `robots` or `tiles`.
+        what: &'static str,
+        /// How many it holds.
+        held: usize,
+    },
+}
+
+/// How much a site holds at most: robots, and tiles summed over robots. A peer that may put
+/// under the site's key space cannot grow it beyond; updates of tiles it holds still go in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SiteLimits {
+    /// Robots (`fleet.max_site_robots`).
+    pub robots: usize,
+    /// Tiles over all robots (`fleet.max_site_tiles`): about 3 KiB each, plus about 0.15 MB
+    /// for each distinct tile's fitted expert.
+    pub tiles: usize,
 }
 
 /// Tile indices beyond this (either axis) are refused: 10⁶ tiles of 2.5 m is 2 500 km, far
@@ -52,16 +71,21 @@ pub const MIN_VAR_M2: f64 = 1e-12;
 #[derive(Debug, Clone)]
 pub struct SiteMap {
     params: WorldParams,
+    limits: SiteLimits,
     robots: Robots,
+    /// Tiles held, summed over robots.
+    tiles: usize,
     world: WorldAggregate,
 }
 
 impl SiteMap {
-    /// An empty site map with the robots' aggregate geometry.
-    pub fn new(params: WorldParams) -> Self {
+    /// An empty site map with the robots' aggregate geometry, holding at most `limits`.
+    pub fn new(params: WorldParams, limits: SiteLimits) -> Self {
         Self {
             params,
+            limits,
             robots: BTreeMap::new(),
+            tiles: 0,
             world: WorldAggregate::new(params),
         }
     }
@@ -98,9 +122,22 @@ impl SiteMap {
                 return Err(TileRefusal::Cell(key.0, key.1));
             }
         }
-        let held = self.robots.get(&update.robot).and_then(|t| t.get(&key));
+        let robot = self.robots.get(&update.robot);
+        let held = robot.and_then(|t| t.get(&key));
         if held.is_some_and(|h| !update.newer_than(h)) {
             return Err(TileRefusal::Stale);
+        }
+        if robot.is_none() && self.robots.len() >= self.limits.robots {
+            return Err(TileRefusal::Full {
+                what: "robots",
+                held: self.robots.len(),
+            });
+        }
+        if held.is_none() && self.tiles >= self.limits.tiles {
+            return Err(TileRefusal::Full {
+                what: "tiles",
+                held: self.tiles,
+            });
         }
         Ok(())
     }
@@ -122,10 +159,12 @@ impl SiteMap {
             }
             let key = (update.tile_column, update.tile_row);
             touched.insert(key);
-            self.robots
+            let replaced = self
+                .robots
                 .entry(update.robot.clone())
                 .or_default()
                 .insert(key, Arc::new(update));
+            self.tiles += usize::from(replaced.is_none());
         }
         let fused: BTreeMap<(i32, i32), TileCells> = touched
             .into_iter()
@@ -226,9 +265,14 @@ mod tests {
         }
     }
 
+    const ROOMY: SiteLimits = SiteLimits {
+        robots: 16,
+        tiles: 1024,
+    };
+
     #[test]
     fn overlapping_robots_fuse_by_inverse_variance_and_the_latest_tile_wins() {
-        let mut site = SiteMap::new(WorldParams::default());
+        let mut site = SiteMap::new(WorldParams::default(), ROOMY);
         let refused = site
             .offer(vec![
                 update("a", 1, &[(1, 1, 0.10, 1e-4), (2, 1, 0.0, 1e-4)]),
@@ -254,7 +298,7 @@ mod tests {
 
     #[test]
     fn bad_tiles_are_refused_with_their_reason() {
-        let site = SiteMap::new(WorldParams::default());
+        let site = SiteMap::new(WorldParams::default(), ROOMY);
         let mut t = update("a", 1, &[(1, 1, 0.1, 1e-4)]);
         t.version = PROTOCOL_VERSION - 1;
         assert!(matches!(site.check(&t), Err(TileRefusal::Version(_))));
@@ -280,5 +324,44 @@ mod tests {
             site.check(&update("a/b", 1, &[])),
             Err(TileRefusal::Robot(_))
         ));
+    }
+
+    #[test]
+    fn a_site_holds_no_more_robots_and_tiles_than_its_limits_but_updates_what_it_holds() {
+        let limits = SiteLimits { robots: 2, tiles: 3 };
+        let mut site = SiteMap::new(WorldParams::default(), limits);
+        let at = |robot: &str, ns: u64, column: i32| {
+            let mut u = update(robot, ns, &[(column * 10 + 1, 1, 0.1, 1e-4)]);
+            u.tile_column = column;
+            u
+        };
+        let refused = site
+            .offer(vec![at("a", 1, 0), at("a", 1, 1), at("b", 1, 0)])
+            .expect("fits");
+        assert!(refused.is_empty(), "{refused:?}");
+        let refused = site
+            .offer(vec![at("c", 1, 0), at("b", 1, 1), at("a", 2, 1)])
+            .expect("fits");
+        assert_eq!(
+            refused,
+            vec![
+                TileRefusal::Full {
+                    what: "robots",
+                    held: 2
+                },
+                TileRefusal::Full {
+                    what: "tiles",
+                    held: 3
+                },
+            ],
+            "a third robot and a fourth tile refused; a newer version of a held tile taken"
+        );
+        assert_eq!(site.robots().len(), 2);
+        assert_eq!(site.robots().iter().map(|r| r.tiles).sum::<u64>(), 3);
+        assert!(
+            refused[0].to_string().contains("fleet.max_site_robots"),
+            "{}",
+            refused[0]
+        );
     }
 }
