@@ -92,7 +92,8 @@ fn the_guard_fails_when_the_devices_noise_floor_is_not_learnt() -> anyhow::Resul
 #[test]
 fn the_unseen_relief_widens_sigma_where_no_scan_saw() -> anyhow::Result<()> {
     // Opt-in (`gp.unseen_relief`): on the quick matrix it lifts occluded ground's pooled 95 %
-    // coverage from 0.814 to 0.846 (docs/EVALUATION.md "Calibration", step 6).
+    // coverage from 0.835 to 0.848 (0.814 to 0.846 before each return also tested maps that
+    // looked from farther; docs/EVALUATION.md "Calibration", step 6 and step 7).
     let occluded = |config: Config| -> anyhow::Result<f64> {
         let report = run_calibration(&FamilyOptions {
             config,
@@ -111,6 +112,6 @@ fn the_unseen_relief_widens_sigma_where_no_scan_saw() -> anyhow::Result<()> {
     let mut config = Config::default();
     config.gp.unseen_relief = true;
     let with = occluded(config)?;
-    anyhow::ensure!(with > without + 0.02, "occluded cov95 {without:.3} -> {with:.3}");
+    anyhow::ensure!(with > without + 0.005, "occluded cov95 {without:.3} -> {with:.3}");
     Ok(())
 }

@@ -47,26 +47,28 @@ pub const COV95: (f64, f64) = (0.92, 0.98);
 pub const COV68: (f64, f64) = (0.60, 0.76);
 
 /// Regression guard of the quick matrix (CI) until every cell meets the bars. The bounds come
-/// from what the quick matrix measured at 2026-11-26 (seed 0, the VLP-16 and OS1-64 with their
-/// devices' noise floors): the defaults pass all of them, and taking one self-calibration step
-/// away fails at least two (the prequential calibration, `gp.prequential_calibration = false`:
-/// window, aggregate and occluded cov95; the learnt noise floor, `ingest.learn_noise_floor =
-/// false`: window cov68 and the median NLPD), as do σ widened past calibration; the full run's
-/// figures are in docs/EVALUATION.md. Pooled 95 % coverage of window answers outside occluded
-/// ground: measured 0.936, without the prequential calibration 0.888, without the floor 0.954.
-pub const QUICK_WINDOW_COV95: (f64, f64) = (0.925, 0.98);
-/// Pooled 68 % coverage of the same answers at most (measured 0.783, without the floor 0.838:
+/// from what the quick matrix measured at 2026-11-27 (seed 0, the VLP-16 and OS1-64 with their
+/// devices' noise floors, each return also testing maps that looked from farther): the
+/// defaults pass all of them, and taking one self-calibration step away fails at least two (the
+/// prequential calibration, `gp.prequential_calibration = false`: window and aggregate cov95,
+/// occluded cov95 and the median NLPD; the learnt noise floor, `ingest.learn_noise_floor =
+/// false`: window and aggregate cov95 and window cov68), as do σ widened past calibration; the
+/// full run's figures are in docs/EVALUATION.md. Pooled 95 % coverage of window answers outside
+/// occluded ground: measured 0.945, without the prequential calibration 0.888, without the floor
+/// 0.962.
+pub const QUICK_WINDOW_COV95: (f64, f64) = (0.925, 0.955);
+/// Pooled 68 % coverage of the same answers at most (measured 0.780, without the floor 0.836:
 /// its noise charged to the maps; heavy tails keep it above 0.68).
 pub const QUICK_WINDOW_MAX_COV68: f64 = 0.81;
 /// Pooled 95 % coverage of aggregate answers outside occluded ground (measured 0.931, without
-/// the prequential calibration 0.862).
-pub const QUICK_AGGREGATE_COV95: (f64, f64) = (0.91, 0.98);
-/// Pooled 95 % coverage of answers about occluded ground at least (measured 0.814, without the
+/// the prequential calibration 0.862, without the floor 0.964).
+pub const QUICK_AGGREGATE_COV95: (f64, f64) = (0.91, 0.955);
+/// Pooled 95 % coverage of answers about occluded ground at least (measured 0.835, without the
 /// prequential calibration 0.540).
 pub const QUICK_MIN_OCCLUDED_COV95: f64 = 0.80;
-/// Median NLPD over window cells at most (measured −2.03, without the floor −1.88, without the
+/// Median NLPD over window cells at most (measured −2.24, without the floor −2.20, without the
 /// prequential calibration −2.00; before any self-calibration 1054).
-pub const QUICK_MAX_MEDIAN_NLPD: f64 = -1.95;
+pub const QUICK_MAX_MEDIAN_NLPD: f64 = -2.1;
 
 /// The answers' pooled coverage at `level` (`cov68` or `cov95`) over `cells` with answers, and
 /// their count.

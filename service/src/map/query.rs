@@ -53,6 +53,18 @@ pub struct RawAnswer {
     pub rho_m: f64,
 }
 
+/// Window map `i`'s own answer at (x, y), before σ scales, whether or not a query would pick it
+/// (the calibrator tests maps that looked from elsewhere than the nearest).
+pub fn raw_elevation_of(snapshot: &MapSnapshot, i: usize, x: f64, y: f64) -> Option<RawAnswer> {
+    let map = snapshot.maps().get(i)?;
+    let [sx, sy, _] = *snapshot.reach().get(i)?;
+    map.elevation(x, y).map(|estimate| RawAnswer {
+        estimate,
+        by: Answerer::Window(i),
+        rho_m: (x - sx).hypot(y - sy),
+    })
+}
+
 /// Window maps whose sensors lie within this much farther than the answering map's blend their
 /// answers with it, so that an answer never jumps where the nearest map changes (metres).
 pub const BLEND_M: f64 = 0.1;

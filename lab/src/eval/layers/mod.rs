@@ -35,9 +35,11 @@ pub const SLOPE_COV95: (f64, f64) = (0.90, 0.98);
 /// Planned path cells that are truly untraversable, at most.
 pub const MAX_PATH_UNSAFE: f64 = 0.01;
 /// The same in the quick form, whose three terrains give the steepest (fBm at 30°) a third of
-/// the pairs where the full run gives it a ninth: 1.3 × the 0.0135 the quick form measured
-/// (2026-11-27, seed 0) while the full run met [`MAX_PATH_UNSAFE`] (0.0075).
-pub const QUICK_MAX_PATH_UNSAFE: f64 = 0.018;
+/// the pairs where the full run gives it a ninth: 1.3 × the 0.0202 the quick form measured
+/// (2026-11-27, seed 0, once the σ calibration also tested maps that looked from farther; 0.0135
+/// before) while the full run on seed 0 met [`MAX_PATH_UNSAFE`] (0.0062; seeds 0–4 averaged
+/// 0.0078, against 0.0076 before: the quick form's 51 pairs move more than the full run's 540).
+pub const QUICK_MAX_PATH_UNSAFE: f64 = 0.026;
 /// Planned path length over the oracle's, at most.
 pub const MAX_PATH_LENGTH_RATIO: f64 = 1.15;
 /// Start / goal pairs planned, at least.

@@ -105,17 +105,26 @@ impl Calibrator {
         let in_heights = self.scales.relief_in_heights;
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
+        let farther = farther_maps(snapshot, &scan.pose.translation.vector);
         let answers = query::par_map(
             &sample,
             rayon::current_num_threads(),
             |&(p, noise_var, weight)| {
                 let a = query::raw_elevation(snapshot, p.x, p.y)?;
-                Some((p, noise_var, weight, a))
+                let mut all = vec![(p, noise_var, weight, a)];
+                for &i in &farther {
+                    if a.by != Answerer::Window(i) {
+                        if let Some(b) = query::raw_elevation_of(snapshot, i, p.x, p.y) {
+                            all.push((p, noise_var, 0.5 * weight, b));
+                        }
+                    }
+                }
+                Some(all)
             },
         );
         let mut touched = [false; 2];
         let mut answered = 0;
-        for (p, noise_var, weight, a) in answers.into_iter().flatten() {
+        for (p, noise_var, weight, a) in answers.into_iter().flatten().flatten() {
             let r2 = (p.z - a.estimate.z).powi(2);
             if !(r2.is_finite() && a.estimate.var.is_finite()) {
                 continue;
@@ -266,6 +275,26 @@ impl Calibrator {
 
 /// A return in map coordinates with its noise variance along z, m².
 type Return = (Vector3<f64>, f64);
+
+/// Bands of a window map's sensor displacement from the new scan's, metres: besides the map a
+/// query would pick, each new return also tests the newest map of each band, if any. What the
+/// nearest map's error looks like depends on how far the robot moved between the two scans
+/// (its rings may land on the old ones or between them); maps that looked from farther make
+/// the residuals of each range bin less dependent on the robot's speed.
+pub const FARTHER_BANDS_M: [(f64, f64); 2] = [(1.5, 3.0), (3.0, 6.0)];
+
+/// The newest window map of `snapshot` in each of [`FARTHER_BANDS_M`] from `sensor`.
+fn farther_maps(snapshot: &MapSnapshot, sensor: &Vector3<f64>) -> Vec<usize> {
+    FARTHER_BANDS_M
+        .iter()
+        .filter_map(|&(lo, hi)| {
+            snapshot.reach().iter().position(|&[x, y, _]| {
+                let d = (x - sensor.x).hypot(y - sensor.y);
+                (lo..hi).contains(&d)
+            })
+        })
+        .collect()
+}
 
 /// Every this many scans (by sequence) pairs of returns test how the maps' errors correlate (the
 /// pairs need every return in a spatial hash: a few milliseconds for an OS1-64 scan).
