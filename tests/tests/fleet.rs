@@ -403,6 +403,8 @@ fn a_robot_off_its_site_holds_departed_tiles_within_its_bound() -> Result<()> {
         c.fleet.tile_period_ms = 100;
         c.fleet.max_held_departed_tiles = bound;
         c.aggregate.radius_m = 4.0;
+        // A whole core keeps the fusion's reach at 10 m in both (the same cells in both).
+        c.aggregate.cpu_share = 1.0;
         let daemon = Daemon::builder(c.clone()).start()?;
         robots.push((id.clone(), c, daemon, client(&id, &endpoint)?));
     }

@@ -75,63 +75,65 @@ fn tiles_left_behind_go_to_disk_and_come_back_when_the_robot_returns() -> anyhow
     Ok(())
 }
 
-/// With a radius shorter than the fusion's reach, ground ahead is fused while its tile lies
-/// beyond the radius, evicted to disk after each insert, and must come back before the next scan
-/// fuses into it: otherwise each eviction would replace its page with that scan's cells alone.
-/// The same drive with a radius that evicts nothing is the reference: every cell ahead holds as
-/// many scans, bit for bit the same height.
+/// With a radius shorter than the fusion's reach, ground beside the path is fused while its
+/// tile lies beyond the radius, evicted to disk after each insert, and must come back before the
+/// next scan fuses into it: otherwise each eviction would replace its page with that scan's
+/// cells alone. Here the robot drives along y = 0 with a 2 m radius, one scan per insert, and the
+/// tile row at y 2.5–5 m (centres 3.75 m from the path) is evicted after every insert; a cell at
+/// y = 2.8 m lies within the smallest reach (3 m) of at least two poses, so on disk it holds at
+/// least two scans. Before the fix it held one: the last insert's.
 #[test]
 fn tiles_fused_beyond_the_radius_keep_every_scan_on_disk() -> anyhow::Result<()> {
-    let probes: Vec<[f64; 2]> = (0..8).map(|k| [4.5 + 0.5 * k as f64, 0.3]).collect();
-    let cells = |radius_m: f64| -> anyhow::Result<Vec<Vec<rangegp_proto::fleet::RobotCell>>> {
-        let tmp = TempDir::new("sitemap-reach")?;
-        let dir = tmp.path().to_path_buf();
-        let h = Harness::start(|c| {
-            c.checkpoint.dir = Some(dir.clone());
-            c.window.capacity = 2;
-            c.aggregate.radius_m = radius_m;
-        })?;
-        let mut publisher = h.publisher(41)?;
-        let mut w = world(19, 8);
-        w.path = rangegp_sim::path::Path {
-            waypoints: (0..8).map(|i| [i as f64, 0.0, 0.0]).collect(),
-        };
-        for i in 0..8 {
-            h.publish_fitted(&mut publisher, &w.scan(i, now_ns()))?;
-            h.wait_status("the scan fused", |s| s.aggregate.inserts == i as u64 + 1)?;
-        }
-        let s = h.client.status()?;
-        if radius_m < 10.0 {
-            assert!(
-                s.aggregate.paged_out > 0 && s.aggregate.paged_in > 0,
-                "{:?}",
-                s.aggregate
-            );
-        } else {
-            assert_eq!(s.aggregate.paged_out, 0, "{:?}", s.aggregate);
-        }
-        Ok(h.client.sources(&probes)?)
+    let tmp = TempDir::new("sitemap-reach")?;
+    let dir = tmp.path().to_path_buf();
+    let h = Harness::start(|c| {
+        c.checkpoint.dir = Some(dir.clone());
+        c.window.capacity = 2;
+        c.aggregate.radius_m = 2.0;
+    })?;
+    let mut publisher = h.publisher(41)?;
+    let mut w = world(19, 8);
+    w.path = rangegp_sim::path::Path {
+        waypoints: (0..8).map(|i| [i as f64, 0.0, 0.0]).collect(),
     };
-    let reference = cells(1000.0)?;
-    let evicted = cells(4.0)?;
-    let scans = |c: &[rangegp_proto::fleet::RobotCell]| c.first().map_or(0, |c| c.scans);
-    let counts: Vec<(u32, u32)> = reference
-        .iter()
-        .zip(&evicted)
-        .map(|(r, e)| (scans(r), scans(e)))
-        .collect();
-    println!("scans per probe cell, kept in memory / evicted at 4 m: {counts:?}");
-    assert!(counts.iter().filter(|(r, _)| *r >= 4).count() >= 4, "{counts:?}");
-    let values = |cells: &[Vec<rangegp_proto::fleet::RobotCell>]| -> Vec<Vec<(f64, f64, u32)>> {
-        cells
-            .iter()
-            .map(|c| c.iter().map(|c| (c.z_m, c.var_m2, c.scans)).collect())
-            .collect()
-    };
-    assert_eq!(
-        values(&reference),
-        values(&evicted),
-        "cells after eviction differ from the reference"
+    for i in 0..8 {
+        h.publish_fitted(&mut publisher, &w.scan(i, now_ns()))?;
+        h.wait_status("the scan fused", |s| s.aggregate.inserts == i as u64 + 1)?;
+    }
+    let s = h.client.status()?;
+    assert!(
+        s.aggregate.paged_out > 0 && s.aggregate.paged_in > 0,
+        "{:?}",
+        s.aggregate
     );
+    let identity = rangegp_service::checkpoint::identity(
+        &h.config.map_id,
+        &rangegp_service::map::aggregate::world::WorldParams::default(),
+    );
+    let pages = rangegp_service::checkpoint::PageStore::open(&dir, identity)?;
+    let mut checked = 0;
+    for x in [2.0, 3.0, 4.0, 5.0] {
+        let params = rangegp_service::map::aggregate::world::WorldParams::default();
+        let cell = (
+            (x / params.cell_m).floor() as i32,
+            (2.8 / params.cell_m).floor() as i32,
+        );
+        let tile = (
+            cell.0.div_euclid(params.tile_cells),
+            cell.1.div_euclid(params.tile_cells),
+        );
+        let page = pages.read(tile)?;
+        let scans = page.cells.iter().find(|(c, _)| *c == cell).map(|(_, c)| c.scans);
+        println!("cell {cell:?} (x {x} m, y 2.8 m) on disk holds {scans:?} scans");
+        if let Some(n) = scans {
+            assert!(
+                n >= 2,
+                "the page of tile {tile:?} holds cell {cell:?} with {n} scan(s)"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked >= 3, "only {checked} of 4 cells beside the path on disk");
+    drop(h);
     Ok(())
 }

@@ -126,24 +126,25 @@ pub(super) fn aggregate_loop(
         last_start = Some(started);
         let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
+        // Maps fitted before a correction this aggregate reflects are moved by it first.
+        let maps = generation.bring_up(state, batch.iter().map(|(_, map)| map));
         if let Some(store) = &kept.pages {
             // The radius around the newest sensor, and every tile a scan of the batch may fuse
-            // into: a tile beyond the radius (a radius shorter than the reach, or the robot moved
-            // within the batch) must come back before it is fused, or its page would be
+            // into or refit as a neighbour (its reach, plus a tile's half diagonal and margin):
+            // a tile beyond the radius (a radius shorter than the reach, or the robot moved
+            // within the batch) must come back before it is touched, or its page would be
             // replaced by the new cells alone when it is evicted again.
             let s = newest.pose.translation.vector;
             let mut discs = vec![(s.x, s.y, radius_m)];
             let params = world.params();
-            let tile_reach =
-                reach_m + params.tile_cells as f64 * params.cell_m * std::f64::consts::FRAC_1_SQRT_2;
-            discs.extend(batch.iter().map(|(scan, _)| {
-                let p = scan.pose.translation.vector;
+            let half_side = (0.5 * params.tile_cells as f64 + params.margin_cells as f64) * params.cell_m;
+            let tile_reach = reach_m + half_side * std::f64::consts::SQRT_2;
+            discs.extend(maps.iter().map(|map| {
+                let p = map.sensor_position();
                 (p.x, p.y, tile_reach)
             }));
             page_in(store, &mut next, &discs, &pool, m);
         }
-        // Maps fitted before a correction this aggregate reflects are moved by it first.
-        let maps = generation.bring_up(state, batch.iter().map(|(_, map)| map));
         let scans: Vec<_> = batch
             .iter()
             .zip(&maps)
@@ -282,19 +283,26 @@ fn page_in(
 fn page_out(store: &mut PageStore, evicted: &[TilePage], m: &Metrics) -> Vec<bool> {
     evicted
         .iter()
-        .map(|page| match store.write(page) {
-            Ok(()) => {
-                m.aggregate_paged_out.fetch_add(1, Ordering::Relaxed);
-                true
+        .map(|page| {
+            // A tile that owns no cell (one refitted from a neighbour's margin alone) would
+            // replace a real page with nothing; it holds nothing to keep.
+            if page.cells.is_empty() {
+                return false;
             }
-            Err(e) => {
-                m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
-                let e: &dyn std::error::Error = &e;
-                warn!(
-                    error = e,
-                    "a tile leaving the radius cannot be written; it is forgotten"
-                );
-                false
+            match store.write(page) {
+                Ok(()) => {
+                    m.aggregate_paged_out.fetch_add(1, Ordering::Relaxed);
+                    true
+                }
+                Err(e) => {
+                    m.aggregate_page_failures.fetch_add(1, Ordering::Relaxed);
+                    let e: &dyn std::error::Error = &e;
+                    warn!(
+                        error = e,
+                        "a tile leaving the radius cannot be written; it is forgotten"
+                    );
+                    false
+                }
             }
         })
         .collect()

@@ -110,7 +110,8 @@ impl TileLedger {
     }
 
     /// Departed tiles waiting with their cells in memory.
-    pub fn held(&self) -> usize {
+    #[cfg(test)]
+    fn held(&self) -> usize {
         self.held
     }
 
@@ -168,6 +169,10 @@ impl TileLedger {
             }
         }
         for (page, on_disk) in pages {
+            // A tile back in the published map (paged in again since it left) goes from there.
+            if world.has_tile(page.key) {
+                continue;
+            }
             if !page.cells.is_empty() && self.sent.get(&page.key).copied() != Some(hash(&page.cells)) {
                 let waiting = if on_disk && self.pages.is_some() {
                     Waiting::OnPage
@@ -231,7 +236,9 @@ impl TileLedger {
                 Waiting::InWorld => world.tile_cells(key),
                 Waiting::Held(cells) => cells.clone(),
                 Waiting::OnPage => match self.pages.as_ref().map(|p| p.read(key)) {
-                    Some(Ok(page)) => page.cells,
+                    Some(Ok(page)) if !page.cells.is_empty() => page.cells,
+                    // A page that holds no cell is not a deletion: nothing goes.
+                    Some(Ok(_)) | None => continue,
                     Some(Err(e)) => {
                         self.forgotten += 1;
                         let e: &dyn std::error::Error = &e;
@@ -241,7 +248,6 @@ impl TileLedger {
                         );
                         continue;
                     }
-                    None => continue,
                 },
             };
             let update = TileUpdate {
@@ -461,11 +467,27 @@ mod tests {
             points: Vec::new(),
             noise_var: Vec::new(),
         };
-        ledger.scan(&changed, vec![(page, false), (emptied, false)], t0);
-        let sent = ledger.take(&changed, "r", u64::MAX, 9);
+        // Tiles (1, 0) and (3, 0) left the radius: the map holds only (0, 0) now.
+        let left = world_with(&[((1, 1), 0.5)]);
+        ledger.scan(&left, vec![(page.clone(), false), (emptied, false)], t0);
+        let sent = ledger.take(&left, "r", u64::MAX, 9);
         assert_eq!(sent.len(), 1, "a page without cells is not a deletion");
         assert_eq!(sent[0].update.cells[0].z_m, 0.9);
         ledger.sent(&sent[0]);
+        // A departure whose tile is back in the map by the time it is seen goes from the map.
+        let mut again = page;
+        again.cells[0].1.z = 0.7;
+        ledger.scan(&changed, vec![(again, false)], t0);
+        let sent = ledger.take(&changed, "r", u64::MAX, 10);
+        let back: Vec<_> = sent.iter().filter(|o| o.key == (1, 0)).collect();
+        assert_eq!(back.len(), 1);
+        assert_eq!(
+            back[0].update.cells[0].z_m, 0.2,
+            "the map's cells, not the old page's"
+        );
+        for o in &sent {
+            ledger.sent(o);
+        }
         // After the subscribers were unreachable, every tile goes again.
         ledger.forget_sent();
         ledger.scan(&changed, Vec::new(), t0);

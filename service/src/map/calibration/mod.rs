@@ -105,17 +105,17 @@ impl Calibrator {
         let in_heights = self.scales.relief_in_heights;
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
-        let farther = farther_maps(snapshot, &scan.pose.translation.vector);
+        let farther = farther_maps(snapshot, &map.sensor_position());
         let answers = query::par_map(
             &sample,
             rayon::current_num_threads(),
             |&(p, noise_var, weight)| {
                 let a = query::raw_elevation(snapshot, p.x, p.y)?;
-                let mut all = vec![(p, noise_var, weight, a)];
+                let mut all = vec![(p, noise_var, weight, a, true)];
                 for &i in &farther {
                     if a.by != Answerer::Window(i) {
                         if let Some(b) = query::raw_elevation_of(snapshot, i, p.x, p.y) {
-                            all.push((p, noise_var, 0.5 * weight, b));
+                            all.push((p, noise_var, 0.5 * weight, b, false));
                         }
                     }
                 }
@@ -124,7 +124,7 @@ impl Calibrator {
         );
         let mut touched = [false; 2];
         let mut answered = 0;
-        for (p, noise_var, weight, a) in answers.into_iter().flatten().flatten() {
+        for (p, noise_var, weight, a, primary) in answers.into_iter().flatten().flatten() {
             let r2 = (p.z - a.estimate.z).powi(2);
             if !(r2.is_finite() && a.estimate.var.is_finite()) {
                 continue;
@@ -146,7 +146,7 @@ impl Calibrator {
                 relief_var: 0.0,
             });
             touched[which] = true;
-            answered += 1;
+            answered += usize::from(primary);
         }
         // The relief learnt from this scan applies to every held window residual (the new ones
         // included), and the window's scales are refitted under it.
