@@ -55,6 +55,20 @@ pub fn output_within(command: &mut Command, timeout: Duration) -> Result<std::pr
     }
 }
 
+/// [`output_within`] with [`TOOL_LIMIT`], failing unless the tool succeeded (the error holds what
+/// it printed): `what` names it there.
+pub fn succeeded_within(command: &mut Command, what: &str) -> Result<std::process::Output> {
+    let out = output_within(command, TOOL_LIMIT)?;
+    anyhow::ensure!(
+        out.status.success(),
+        "{what} failed ({}):\n{}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(out)
+}
+
 /// A child process and what it says.
 pub struct ChildProcess {
     child: Child,

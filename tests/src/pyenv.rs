@@ -4,6 +4,7 @@
 //! test binary and kept between runs while the list is unchanged. Without python3 the tests are
 //! skipped locally and fail under CI (`CI` set).
 
+use crate::child::succeeded_within;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Mutex;
@@ -39,22 +40,19 @@ pub fn venv_python() -> anyhow::Result<Option<PathBuf>> {
             std::fs::remove_dir_all(&copy)?;
         }
         copy_tree(&root.join("python"), &copy)?;
-        let out = Command::new(python)
-            .args([
-                "-m",
-                "pip",
-                "install",
-                "--quiet",
-                "--no-deps",
-                "--no-build-isolation",
-            ])
-            .arg(&copy)
-            .output()?;
-        anyhow::ensure!(
-            out.status.success(),
-            "pip install ./python failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        succeeded_within(
+            Command::new(python)
+                .args([
+                    "-m",
+                    "pip",
+                    "install",
+                    "--quiet",
+                    "--no-deps",
+                    "--no-build-isolation",
+                ])
+                .arg(&copy),
+            "pip install ./python",
+        )?;
     }
     *made = Some(python.clone());
     Ok(python)
@@ -96,18 +94,16 @@ fn make_venv() -> anyhow::Result<Option<PathBuf>> {
     if !crate::tool_or_skip("python3", "the Python interop tests")? {
         return Ok(None);
     }
-    let ok = Command::new("python3")
-        .args(["-m", "venv"])
-        .arg(&venv)
-        .status()?
-        .success();
-    anyhow::ensure!(ok, "python3 -m venv failed");
-    let ok = Command::new(&python)
-        .args(["-m", "pip", "install", "--quiet"])
-        .args(PACKAGES)
-        .status()?
-        .success();
-    anyhow::ensure!(ok, "pip install {PACKAGES:?} failed");
+    succeeded_within(
+        Command::new("python3").args(["-m", "venv"]).arg(&venv),
+        "python3 -m venv",
+    )?;
+    succeeded_within(
+        Command::new(&python)
+            .args(["-m", "pip", "install", "--quiet"])
+            .args(PACKAGES),
+        "pip install of the pinned packages",
+    )?;
     std::fs::write(&marker, PACKAGES.join("\n"))?;
     Ok(Some(python))
 }

@@ -3,7 +3,7 @@
 //! iceoryx2 and answers elevation over Zenoh from a live daemon. Without a C++ compiler the test
 //! is skipped locally and fails under CI (`CI` set).
 
-use rangegp_tests::child::{output_within, TOOL_LIMIT};
+use rangegp_tests::child::succeeded_within;
 use rangegp_tests::{Harness, TempDir};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -32,7 +32,7 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
     let lib = library_dir()?;
     let tmp = TempDir::new("elevation")?;
     let exe = tmp.path().join("elevation");
-    let out = output_within(
+    succeeded_within(
         Command::new(&compiler)
             .args(["-std=c++17", "-Wall", "-Wextra", "-Werror"])
             .arg(root.join("examples/cpp/elevation.cpp"))
@@ -46,24 +46,14 @@ fn the_cpp_example_publishes_a_scan_and_reads_elevation_back() -> anyhow::Result
             .arg(format!("-Wl,--disable-new-dtags,-rpath,{}", lib.display()))
             .arg("-o")
             .arg(&exe),
-        TOOL_LIMIT,
+        "compiling the example",
     )?;
-    anyhow::ensure!(
-        out.status.success(),
-        "compiling the example failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let h = Harness::start(|_| {})?;
-    let run = output_within(
+    let run = succeeded_within(
         Command::new(&exe).args([&h.endpoint, &h.config.map_id, &h.config.scan_service_name()]),
-        TOOL_LIMIT,
+        "the example",
     )?;
     let stdout = String::from_utf8_lossy(&run.stdout);
-    anyhow::ensure!(
-        run.status.success(),
-        "the example failed:\n{stdout}\n{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let lines: Vec<Vec<f64>> = stdout
         .lines()
         .filter_map(|l| l.strip_prefix("elevation "))

@@ -8,7 +8,7 @@
 //!
 //! The virtual environment and its pinned packages: `rangegp_tests::pyenv`.
 
-use rangegp_tests::child::{output_within, ChildProcess, TOOL_LIMIT};
+use rangegp_tests::child::{succeeded_within, ChildProcess};
 use rangegp_tests::pyenv::venv_python;
 use rangegp_tests::{Harness, WAIT};
 use std::path::Path;
@@ -23,7 +23,7 @@ fn examples() -> std::path::PathBuf {
 /// tests' timeout, then `args`); its output, once it has succeeded.
 fn planner_example(python: &Path, script: &str, h: &Harness, args: &[&str]) -> anyhow::Result<Output> {
     let timeout = WAIT.as_secs().to_string();
-    let out = output_within(
+    succeeded_within(
         Command::new(python)
             .arg(examples().join(script))
             .args([
@@ -35,14 +35,8 @@ fn planner_example(python: &Path, script: &str, h: &Harness, args: &[&str]) -> a
                 &timeout,
             ])
             .args(args),
-        TOOL_LIMIT,
-    )?;
-    anyhow::ensure!(
-        out.status.success(),
-        "{script} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Ok(out)
+        script,
+    )
 }
 
 #[test]
@@ -126,21 +120,16 @@ fn the_python_packages_pytest_suite_passes_against_a_live_daemon() -> anyhow::Re
     };
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let h = Harness::start(|_| {})?;
-    let out = output_within(
+    let out = succeeded_within(
         Command::new(&python)
             .args(["-m", "pytest", "-q", "-p", "no:cacheprovider"])
             .arg(root.join("python/tests"))
             .env("RANGEGP_CONNECT", &h.endpoint)
             .env("RANGEGP_MAP_ID", &h.config.map_id)
             .env("RANGEGP_SERVICE", h.config.scan_service_name()),
-        TOOL_LIMIT,
+        "pytest",
     )?;
     let stdout = String::from_utf8_lossy(&out.stdout);
-    anyhow::ensure!(
-        out.status.success(),
-        "pytest failed:\n{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     assert!(
         stdout.contains("5 passed") && !stdout.contains("skipped"),
         "every test of the suite ran: {stdout}"
@@ -171,15 +160,10 @@ fn an_independent_ros2_mcap_implementation_reads_our_recordings_and_we_read_its(
     };
     record::write(std::fs::File::create(&ours)?, &scans, &opts)?;
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("python/reencode_mcap.py");
-    let out = output_within(
+    let out = succeeded_within(
         Command::new(&python).arg(script).arg(&ours).arg(&theirs),
-        TOOL_LIMIT,
+        "reencode_mcap.py",
     )?;
-    anyhow::ensure!(
-        out.status.success(),
-        "reencode_mcap.py failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let read: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     assert_eq!(
         read["topics"],

@@ -348,13 +348,7 @@ fn cargo_tree(package: &str, depth: Option<u32>) -> Vec<String> {
     if let Some(d) = depth {
         cmd.args(["--depth", &d.to_string()]);
     }
-    let out = rangegp_tests::child::output_within(&mut cmd, rangegp_tests::child::TOOL_LIMIT)
-        .expect("run cargo tree");
-    assert!(
-        out.status.success(),
-        "cargo tree: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = rangegp_tests::child::succeeded_within(&mut cmd, "cargo tree").expect("run cargo tree");
     String::from_utf8_lossy(&out.stdout)
         .lines()
         .filter_map(|l| l.split_whitespace().next().map(str::to_owned))

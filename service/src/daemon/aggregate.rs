@@ -174,7 +174,7 @@ pub(super) fn aggregate_loop(
                     None => vec![false; evicted.len()],
                 };
                 if let Some(departures) = &kept.departures {
-                    departures.push(&evicted, &on_disk);
+                    departures.push(evicted.iter().cloned().zip(on_disk));
                 }
                 let evicted = evicted.len();
                 world = Arc::new(next);

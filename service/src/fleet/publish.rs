@@ -40,21 +40,20 @@ pub struct TileSettings {
 }
 
 /// A tile that left the robot's radius, and whether its page is on disk.
-type Departure = (TilePage, bool);
+pub type Departure = (TilePage, bool);
 
 /// Tiles that left the robot's radius, handed over by the aggregate thread.
 #[derive(Debug, Default)]
 pub struct Departures(Mutex<Vec<Departure>>);
 
 impl Departures {
-    /// Hands `pages` over (their cells are sent if they changed since last sent); `on_disk[k]`
-    /// says whether `pages[k]` was written to the page store.
-    pub fn push(&self, pages: &[TilePage], on_disk: &[bool]) {
-        let on_disk = on_disk.iter().copied().chain(std::iter::repeat(false));
+    /// Hands departed tiles over, each with whether its page was written to the page store
+    /// (their cells are sent if they changed since last sent).
+    pub fn push(&self, departed: impl IntoIterator<Item = Departure>) {
         self.0
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .extend(pages.iter().cloned().zip(on_disk));
+            .extend(departed);
     }
 
     fn take(&self) -> Vec<Departure> {
@@ -84,8 +83,6 @@ pub struct TileLedger {
     pages: Option<PageReader>,
     /// Departed tiles held with their cells at most.
     max_held: usize,
-    /// Departed tiles held with their cells now.
-    held: usize,
     /// Departed tiles whose unsent change was forgotten: over `max_held`, or a page unreadable.
     forgotten: u64,
 }
@@ -99,7 +96,6 @@ impl TileLedger {
             pending: BTreeMap::new(),
             pages,
             max_held,
-            held: 0,
             forgotten: 0,
         }
     }
@@ -112,44 +108,37 @@ impl TileLedger {
     /// Departed tiles waiting with their cells in memory.
     #[cfg(test)]
     fn held(&self) -> usize {
-        self.held
+        self.pending
+            .values()
+            .filter(|(_, w)| matches!(w, Waiting::Held(_)))
+            .count()
     }
 
     /// Sets where `key` waits from (keeping since when, if it waited already).
     fn wait(&mut self, key: (i32, i32), waiting: Waiting, now: Instant) {
-        let slot = self.pending.entry(key).or_insert((now, Waiting::InWorld));
-        self.held -= usize::from(matches!(slot.1, Waiting::Held(_)));
-        self.held += usize::from(matches!(waiting, Waiting::Held(_)));
-        slot.1 = waiting;
+        self.pending.entry(key).or_insert((now, Waiting::InWorld)).1 = waiting;
     }
 
-    /// Takes `key` out of the waiting tiles.
-    fn unwait(&mut self, key: (i32, i32)) -> Option<(Instant, Waiting)> {
-        let out = self.pending.remove(&key);
-        self.held -= usize::from(matches!(out, Some((_, Waiting::Held(_)))));
-        out
-    }
-
-    /// Forgets the oldest held departed tiles beyond `max_held`.
+    /// Forgets the oldest held departed tiles beyond `max_held` (a count over the waiting
+    /// tiles, once a period).
     fn bound_held(&mut self) {
-        if self.held <= self.max_held {
-            return;
-        }
         let mut held: Vec<((i32, i32), Instant)> = self
             .pending
             .iter()
             .filter(|(_, (_, w))| matches!(w, Waiting::Held(_)))
             .map(|(&k, &(t, _))| (k, t))
             .collect();
+        let Some(over) = held.len().checked_sub(self.max_held).filter(|&n| n > 0) else {
+            return;
+        };
         held.sort_by_key(|&(k, t)| (t, k));
-        let over = self.held - self.max_held;
         for &(key, _) in &held[..over] {
-            self.unwait(key);
+            self.pending.remove(&key);
         }
         self.forgotten += over as u64;
         warn!(
             tiles = over,
-            held = self.held,
+            held = self.max_held,
             "departed tiles waiting for the site exceed fleet.max_held_departed_tiles and have no \
              page on disk; their oldest unsent changes are forgotten"
         );
@@ -229,7 +218,7 @@ impl TileLedger {
             if spent >= budget && !out.is_empty() {
                 break;
             }
-            let Some((_, departed)) = self.unwait(key) else {
+            let Some((_, departed)) = self.pending.remove(&key) else {
                 continue;
             };
             let cells = match &departed {
