@@ -14,6 +14,8 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         seed: 0,
         out: out.to_path_buf(),
         config: None,
+        step_m: 1.0,
+        stop_scans: 0,
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
     let pictures = [

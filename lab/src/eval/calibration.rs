@@ -403,6 +403,8 @@ fn run_one(
         &Drive {
             config: &opts.config,
             scans: if opts.quick { 6 } else { 20 },
+            step_m: opts.step_m,
+            stop_scans: opts.stop_scans,
             path_seed: seed ^ 0xca1,
             scan_seed: &|i| seed ^ ((i as u64) << 20) ^ 0x5ca,
             stamp_base: 1_000,

@@ -21,8 +21,12 @@ use std::sync::Arc;
 pub(super) struct Drive<'a> {
     /// Daemon configuration mapped with (its window, calibration and aggregate settings).
     pub config: &'a Config,
-    /// Poses along the wandering path, 1 m apart.
+    /// Poses along the wandering path.
     pub scans: usize,
+    /// Distance between consecutive poses, metres (the robot's speed over its scan rate).
+    pub step_m: f64,
+    /// Scans taken after the drive from where it ended, the robot standing still.
+    pub stop_scans: usize,
     /// Seed of the path.
     pub path_seed: u64,
     /// Seed of scan `i`'s noise.
@@ -49,13 +53,20 @@ pub(super) struct MappedDrive {
 pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Drive) -> Result<MappedDrive> {
     let config = drive.config;
     let params = config.map_params();
-    let path = Path::wander(drive.path_seed, terrain, drive.scans, 1.0, 0.25);
-    let poses: Vec<Isometry3<f64>> = (0..drive.scans)
-        .map(|i| path.pose(terrain, i, preset.mount_height_m))
+    // The same curvature at any step: 0.25 rad of turn at most per metre driven.
+    let path = Path::wander(
+        drive.path_seed,
+        terrain,
+        drive.scans,
+        drive.step_m,
+        0.25 * drive.step_m,
+    );
+    let poses: Vec<Isometry3<f64>> = (0..drive.scans + drive.stop_scans)
+        .map(|i| path.pose(terrain, i.min(drive.scans - 1), preset.mount_height_m))
         .collect();
     let bar = drive
         .progress
-        .then(|| progress::bar(drive.scans as u64, &format!("  {} scans", preset.name)));
+        .then(|| progress::bar(poses.len() as u64, &format!("  {} scans", preset.name)));
     let messages: Vec<_> = poses
         .par_iter()
         .enumerate()

@@ -77,6 +77,23 @@ pub struct EvalOptions {
     /// to compare settings on the same scenes.
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Distance between consecutive scans of the calibration and layers drives, metres: 1 m is a
+    /// rover at 10 m/s with a 10 Hz scanner, 0.1 m one at 1 m/s.
+    #[arg(long, default_value_t = 1.0, value_parser = step_of)]
+    pub step_m: f64,
+    /// Scans the calibration and layers drives take after their last step, standing still.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(..=1000))]
+    pub stop_scans: u16,
+}
+
+/// Parses `--step-m`: a finite step in (0, 5] m.
+fn step_of(s: &str) -> std::result::Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
+    if v.is_finite() && v > 0.0 && v <= 5.0 {
+        Ok(v)
+    } else {
+        Err(format!("{s}: the step must lie in (0, 5] m"))
+    }
 }
 
 /// What `summary.json` holds.
@@ -266,6 +283,10 @@ pub struct FamilyOptions {
     pub seed: u64,
     /// The daemon configuration whose map, calibration and aggregate settings are used.
     pub config: Config,
+    /// Distance between consecutive scans of the calibration and layers drives, metres.
+    pub step_m: f64,
+    /// Scans those drives take after their last step, standing still.
+    pub stop_scans: usize,
 }
 
 impl FamilyOptions {
@@ -275,6 +296,8 @@ impl FamilyOptions {
             quick: true,
             seed: 0,
             config: Config::default(),
+            step_m: 1.0,
+            stop_scans: 0,
         }
     }
 
@@ -287,6 +310,8 @@ impl FamilyOptions {
                 Some(path) => Config::load(path)?,
                 None => Config::default(),
             },
+            step_m: opts.step_m,
+            stop_scans: usize::from(opts.stop_scans),
         })
     }
 }

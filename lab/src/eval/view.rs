@@ -237,6 +237,8 @@ fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &FamilyOptions) -
         &Drive {
             config: &opts.config,
             scans,
+            step_m: 1.0,
+            stop_scans: 0,
             path_seed: seed ^ 0x71e,
             scan_seed: &|i| seed ^ ((i as u64) << 24) ^ 0x71e,
             stamp_base: 2_000,

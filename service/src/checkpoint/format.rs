@@ -12,6 +12,7 @@
 //! Paged-out tiles ([`super::pages`]) use the same frame with the magic `RGPTILE\0` and a
 //! [`super::pages::TilePage`] payload.
 
+use super::format3::{self, CheckpointV3};
 use super::Checkpoint;
 use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
 use serde::de::DeserializeOwned;
@@ -20,8 +21,9 @@ use thiserror::Error;
 
 /// First bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RGPCKPT\0";
-/// Layout version; bumped when [`Checkpoint`] changes.
-pub const FORMAT_VERSION: u32 = 3;
+/// Layout version; bumped when [`Checkpoint`] changes (4: the aggregate keeps where its last
+/// scans stood).
+pub const FORMAT_VERSION: u32 = 4;
 const HEADER_LEN: usize = 8 + 4 + 8 + 8;
 const TRAILER_LEN: usize = 8;
 
@@ -35,8 +37,13 @@ pub enum FormatError {
     #[error("not a rangegp checkpoint (bad magic)")]
     BadMagic,
     /// Written by another format version.
-    #[error("format version {0}, this daemon reads {FORMAT_VERSION}")]
-    Version(u32),
+    #[error("format version {found}, this daemon reads {reads}")]
+    Version {
+        /// Version in the file.
+        found: u32,
+        /// The version this daemon reads.
+        reads: u32,
+    },
     /// Written for another map or other aggregate settings.
     #[error("foreign checkpoint: identity {found:016x}, expected {expected:016x}")]
     Foreign {
@@ -63,21 +70,33 @@ pub enum FormatError {
 
 /// Encodes `checkpoint` for the map with identity `identity`.
 pub fn encode(checkpoint: &Checkpoint, identity: u64) -> Result<Vec<u8>, FormatError> {
-    encode_framed(MAGIC, checkpoint, identity)
+    encode_framed(MAGIC, FORMAT_VERSION, checkpoint, identity)
 }
 
 /// Decodes a checkpoint, checking magic, version, identity, length and checksum before the
-/// payload is parsed.
+/// payload is parsed; a format-3 one is read too ([`super::format3`]).
 pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
-    decode_framed(MAGIC, bytes, identity)
+    match decode_framed(MAGIC, FORMAT_VERSION, bytes, identity) {
+        Err(FormatError::Version {
+            found: format3::VERSION,
+            ..
+        }) => decode_framed::<CheckpointV3>(MAGIC, format3::VERSION, bytes, identity).map(Checkpoint::from),
+        decoded => decoded,
+    }
 }
 
-/// Encodes `value` in the frame above with `magic`, for the map with identity `identity`.
-pub fn encode_framed<T: Serialize>(magic: [u8; 8], value: &T, identity: u64) -> Result<Vec<u8>, FormatError> {
+/// Encodes `value` in the frame above with `magic` and layout `version`, for the map with
+/// identity `identity`.
+pub fn encode_framed<T: Serialize>(
+    magic: [u8; 8],
+    version: u32,
+    value: &T,
+    identity: u64,
+) -> Result<Vec<u8>, FormatError> {
     let payload = codec::encode(Encoding::Bincode, value).map_err(|e| FormatError::Payload(e.to_string()))?;
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len() + TRAILER_LEN);
     out.extend_from_slice(&magic);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.extend_from_slice(&identity.to_le_bytes());
     out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
     out.extend_from_slice(&payload);
@@ -86,10 +105,11 @@ pub fn encode_framed<T: Serialize>(magic: [u8; 8], value: &T, identity: u64) -> 
     Ok(out)
 }
 
-/// Decodes a value framed with `magic`, checking magic, version, identity, length and checksum
-/// before the payload is parsed.
+/// Decodes a value framed with `magic` and layout `version`, checking magic, version, identity,
+/// length and checksum before the payload is parsed.
 pub fn decode_framed<T: DeserializeOwned>(
     magic: [u8; 8],
+    version: u32,
     bytes: &[u8],
     identity: u64,
 ) -> Result<T, FormatError> {
@@ -106,9 +126,12 @@ pub fn decode_framed<T: DeserializeOwned>(
     }
     let mut v = [0u8; 4];
     v.copy_from_slice(&bytes[8..12]);
-    let version = u32::from_le_bytes(v);
-    if version != FORMAT_VERSION {
-        return Err(FormatError::Version(version));
+    let found = u32::from_le_bytes(v);
+    if found != version {
+        return Err(FormatError::Version {
+            found,
+            reads: version,
+        });
     }
     let found = u64_at(12);
     if found != identity {

@@ -12,11 +12,12 @@
 //! window of local maps is not kept: it is rebuilt by the next scans within a second.
 
 pub mod format;
+pub mod format3;
 pub mod pages;
 pub mod store;
 pub mod writer;
 
-use crate::map::aggregate::world::{WorldAggregate, WorldParams, WorldState, HISTORY_LEN};
+use crate::map::aggregate::world::{WorldAggregate, WorldParams, WorldState, HISTORY_LEN, VIEWS_KEPT};
 use crate::map::aggregate::AggregateError;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -102,6 +103,11 @@ impl Checkpoint {
         }
         if w.history.len() > HISTORY_LEN || w.history.len() as u64 > w.inserts {
             return Err(RestoreError::Invalid("scan history longer than its bound"));
+        }
+        if w.views.len() > VIEWS_KEPT || w.views.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(RestoreError::Invalid(
+                "more recent sensor positions than kept, or one not finite",
+            ));
         }
         Ok(WorldAggregate::from_state(w.clone())?)
     }
@@ -200,6 +206,7 @@ pub(crate) mod tests {
                 cells,
                 inserts: 1,
                 history,
+                views: vec![[0.5, -1.0]],
             },
         }
     }
@@ -220,6 +227,41 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_format_3_checkpoint_is_read_with_no_recent_views() {
+        let c = sample();
+        let old = format3::CheckpointV3 {
+            created_unix_ns: c.created_unix_ns,
+            kernel_variance: c.kernel_variance,
+            length_scale: c.length_scale,
+            world: format3::WorldStateV3 {
+                params: c.world.params,
+                cells: c.world.cells.clone(),
+                inserts: c.world.inserts,
+                history: c.world.history.clone(),
+            },
+        };
+        let bytes = format::encode_framed(format::MAGIC, format3::VERSION, &old, id()).expect("encode");
+        let back = decode(&bytes, id()).expect("a format-3 checkpoint decodes");
+        let without_views = Checkpoint {
+            world: WorldState {
+                views: Vec::new(),
+                ..c.world
+            },
+            ..c
+        };
+        assert_eq!(back, without_views);
+        assert!(back.restore(&WorldParams::default()).is_ok());
+        let other = format::encode_framed(format::MAGIC, 2, &old, id()).expect("encode");
+        assert_eq!(
+            decode(&other, id()).err(),
+            Some(FormatError::Version {
+                found: 2,
+                reads: format::FORMAT_VERSION
+            })
+        );
+    }
+
+    #[test]
     fn each_kind_of_damage_has_its_reason() {
         let bytes = encode(&sample(), id()).expect("encode");
         let with = |f: &dyn Fn(&mut Vec<u8>)| {
@@ -229,7 +271,13 @@ pub(crate) mod tests {
         };
         assert_eq!(with(&|b| b.truncate(20)), Some(FormatError::TooShort(20)));
         assert_eq!(with(&|b| b[0] ^= 1), Some(FormatError::BadMagic));
-        assert_eq!(with(&|b| b[8] = 9), Some(FormatError::Version(9)));
+        assert_eq!(
+            with(&|b| b[8] = 9),
+            Some(FormatError::Version {
+                found: 9,
+                reads: format::FORMAT_VERSION
+            })
+        );
         assert!(matches!(with(&|b| b[12] ^= 1), Some(FormatError::Foreign { .. })));
         assert!(matches!(with(&|b| b.push(0)), Some(FormatError::Length { .. })));
         let mid = bytes.len() / 2;
@@ -252,6 +300,13 @@ pub(crate) mod tests {
         let mut c = sample();
         c.length_scale = -1.0;
         assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let mut c = sample();
+        c.world.views[0][1] = f64::INFINITY;
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let mut c = sample();
+        c.world.views = vec![[0.0, 0.0]; VIEWS_KEPT + 1];
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        assert!(sample().restore(&params).is_ok());
         let other = WorldParams {
             cell_m: 0.5,
             ..params

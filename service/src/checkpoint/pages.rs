@@ -15,6 +15,9 @@ use thiserror::Error;
 
 /// First bytes of every tile page.
 pub const PAGE_MAGIC: [u8; 8] = *b"RGPTILE\0";
+/// Layout version of a tile page; bumped when [`TilePage`] changes (apart from checkpoints',
+/// so that a checkpoint change leaves the pages of the site map on disk readable).
+pub const PAGE_FORMAT_VERSION: u32 = 3;
 const SUFFIX: &str = ".page";
 
 /// A tile page could not be written or read.
@@ -96,10 +99,13 @@ impl PageStore {
     fn put(&self, page: &TilePage) -> Result<(), PageError> {
         let path = self.path(page.key);
         let tmp = path.with_extension("page.tmp");
-        let bytes = encode_framed(PAGE_MAGIC, page, self.identity).map_err(|source| PageError::Format {
-            path: path.clone(),
-            source,
-        })?;
+        let bytes =
+            encode_framed(PAGE_MAGIC, PAGE_FORMAT_VERSION, page, self.identity).map_err(|source| {
+                PageError::Format {
+                    path: path.clone(),
+                    source,
+                }
+            })?;
         let io = |source| PageError::Io {
             path: path.clone(),
             source,
@@ -176,7 +182,8 @@ impl PageReader {
             path: path.clone(),
             source,
         })?;
-        decode_framed(PAGE_MAGIC, &bytes, self.identity).map_err(|source| PageError::Format { path, source })
+        decode_framed(PAGE_MAGIC, PAGE_FORMAT_VERSION, &bytes, self.identity)
+            .map_err(|source| PageError::Format { path, source })
     }
 }
 

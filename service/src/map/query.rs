@@ -15,10 +15,21 @@ const CANDIDATES: usize = 3;
 /// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`],
 /// with their index in the snapshot.
 fn nearest(snapshot: &MapSnapshot, x: f64, y: f64) -> Vec<(usize, &Arc<LocalRangeMap>)> {
+    nearest_where(snapshot, x, y, |_| true)
+}
+
+/// [`nearest`] among the maps whose index `keep` accepts.
+fn nearest_where(
+    snapshot: &MapSnapshot,
+    x: f64,
+    y: f64,
+    keep: impl Fn(usize) -> bool,
+) -> Vec<(usize, &Arc<LocalRangeMap>)> {
     let mut near: Vec<(f64, usize)> = snapshot
         .reach()
         .iter()
         .enumerate()
+        .filter(|&(i, _)| keep(i))
         .filter_map(|(i, &[sx, sy, range])| {
             let rho2 = (x - sx).powi(2) + (y - sy).powi(2);
             (rho2 < range * range).then_some((rho2, i))
@@ -63,6 +74,20 @@ pub fn raw_elevation_of(snapshot: &MapSnapshot, i: usize, x: f64, y: f64) -> Opt
         by: Answerer::Window(i),
         rho_m: (x - sx).hypot(y - sy),
     })
+}
+
+/// [`raw_elevation`] among the window maps whose index `keep` accepts, without the aggregate:
+/// the nearest of them that answers (the calibrator tests maps that looked from elsewhere than
+/// where the new scan stands).
+pub fn raw_window_elevation_where(
+    snapshot: &MapSnapshot,
+    x: f64,
+    y: f64,
+    keep: impl Fn(usize) -> bool,
+) -> Option<RawAnswer> {
+    nearest_where(snapshot, x, y, keep)
+        .into_iter()
+        .find_map(|(i, _)| raw_elevation_of(snapshot, i, x, y))
 }
 
 /// Window maps whose sensors lie within this much farther than the answering map's blend their

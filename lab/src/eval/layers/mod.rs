@@ -365,6 +365,8 @@ fn run_case(
         &Drive {
             config: &opts.config,
             scans: if opts.quick { 12 } else { 20 },
+            step_m: opts.step_m,
+            stop_scans: opts.stop_scans,
             path_seed: seed ^ 0x1a7e,
             scan_seed: &|i| seed.wrapping_mul(7919) + i as u64,
             stamp_base: 1_000_000,

@@ -91,6 +91,33 @@ fn before_the_first_map_nothing_is_learnt() {
 }
 
 #[test]
+fn a_return_tests_a_map_from_farther_where_one_answers_else_the_nearest() {
+    // A creeping robot: its returns land on the nearest map's rings and would teach σ too
+    // narrow for the ground between them, so a map from farther is tested where it answers.
+    let map_at = |x: f64, sequence: u64| {
+        let scan = scan_over_flat(x, sequence);
+        Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit"))
+    };
+    let mut window = Window::new(16);
+    window.push(map_at(-1.0, 1));
+    window.push(map_at(-0.1, 2));
+    let snapshot = window.snapshot();
+    let sensor = Vector3::new(0.0, 0.0, 0.75);
+    let (x, y) = (3.0, 0.5);
+    let own = query::raw_elevation(&snapshot, x, y).expect("answered");
+    assert_eq!(own.by, Answerer::Window(0), "the query takes the map from -0.1 m");
+    let tested = primary_answer(&snapshot, &sensor, x, y).expect("tested");
+    assert_eq!(tested.by, Answerer::Window(1), "the map from -1 m is tested");
+    assert!((tested.rho_m - (x + 1.0).hypot(y)).abs() < 1e-9);
+    // Standing still with no map from farther: the nearest is tested (its σ at its own rings
+    // still shows what the map claims too surely there).
+    let mut still = Window::new(16);
+    still.push(map_at(-0.1, 2));
+    let tested = primary_answer(&still.snapshot(), &sensor, x, y).expect("tested");
+    assert_eq!(tested.by, Answerer::Window(0));
+}
+
+#[test]
 fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
     let mut residuals = Residuals::default();
     let r = |sd: f64| Residual {

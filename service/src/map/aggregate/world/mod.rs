@@ -223,6 +223,9 @@ pub struct WorldState {
     pub inserts: u64,
     /// The newest of them (at most [`HISTORY_LEN`]), oldest first.
     pub history: Vec<ScanRef>,
+    /// Where the last scans' sensors stood, (x, y) in metres, oldest first (at most
+    /// [`VIEWS_KEPT`]): how new the next scan's view is ([`INDEPENDENT_VIEW_M`]).
+    pub views: Vec<[f64; 2]>,
 }
 
 /// The world-frame tiled elevation aggregate.
@@ -244,6 +247,10 @@ pub struct WorldAggregate {
     refits: u64,
     inserts: u64,
     history: VecDeque<ScanRef>,
+    // The sensors (x, y) of the last scans fused as views (share at least [`MIN_VIEW_SHARE`]),
+    // newest last: how new a scan's view is ([`view_share`]). Cleared by a correction that
+    // moves cells: the first scan after one counts in full.
+    views: VecDeque<[f64; 2]>,
 }
 
 impl WorldAggregate {
@@ -263,6 +270,7 @@ impl WorldAggregate {
             refits: 0,
             inserts: 0,
             history: VecDeque::new(),
+            views: VecDeque::new(),
         }
     }
 
@@ -272,6 +280,7 @@ impl WorldAggregate {
         agg.cells = state.cells.into_iter().collect();
         agg.inserts = state.inserts;
         agg.history = state.history.into_iter().collect();
+        agg.views = state.views.into_iter().collect();
         let all: BTreeSet<(i32, i32)> = agg.cells.keys().flat_map(|&c| agg.tiles_covering(c)).collect();
         agg.refit(all)?;
         Ok(agg)
@@ -286,6 +295,7 @@ impl WorldAggregate {
             cells,
             inserts: self.inserts,
             history: self.history.iter().copied().collect(),
+            views: self.views.iter().copied().collect(),
         }
     }
 
@@ -382,6 +392,8 @@ impl WorldAggregate {
         let reach_m = reach_m.min(self.params.max_reach_m);
         let mut fused = Vec::with_capacity(batch.len());
         for (scan, local) in batch {
+            let sensor = local.sensor_position();
+            let share = view_share(&self.views, sensor.x, sensor.y);
             let cells: Vec<FusedCell> = self
                 .predicted_cells(local, reach_m)
                 .into_iter()
@@ -440,6 +452,14 @@ impl WorldAggregate {
                 if now_replaced.contains(&c) {
                     continue;
                 }
+                // Where the cell holds earlier views, this one counts as its share of an
+                // independent view: its variance is divided by the share (none from where the
+                // last scans stood). A cell seen for the first time takes it in full.
+                let var = match self.cells.contains_key(&c) {
+                    false => var,
+                    true if share >= MIN_VIEW_SHARE => var / share as f32,
+                    true => continue,
+                };
                 let seen = Cell {
                     z: z as f64,
                     var: var as f64,
@@ -460,6 +480,14 @@ impl WorldAggregate {
             fused.push(raster);
             changes.push(moved);
             self.inserts += 1;
+            // Only a view that counted is remembered: a robot creeping by less than the least
+            // share a scan still builds up distance from the last view that did.
+            if share >= MIN_VIEW_SHARE {
+                if self.views.len() == VIEWS_KEPT {
+                    self.views.pop_front();
+                }
+                self.views.push_back([sensor.x, sensor.y]);
+            }
             if self.history.len() == HISTORY_LEN {
                 self.history.pop_front();
             }
@@ -599,6 +627,27 @@ fn f32_cell(c: Cell) -> Cell {
         var: c.var as f32 as f64,
         scans: c.scans,
     }
+}
+
+/// Scans whose sensors lie closer than this view the ground from nearly the same place, metres:
+/// their rings fall on the same ground, so their heights between the rings err alike, and
+/// fusing them as independent would shrink σ with every scan of a robot creeping or standing
+/// still (measured: docs/EVALUATION.md "Slow robots").
+pub const INDEPENDENT_VIEW_M: f64 = 0.5;
+
+/// A view sharing less than this of an independent one adds nothing to cells already fused.
+pub const MIN_VIEW_SHARE: f64 = 0.05;
+
+/// The recent sensors a new scan's view is compared with.
+pub const VIEWS_KEPT: usize = 64;
+
+/// The share of an independent view a scan from (x, y) brings: its distance to the nearest of
+/// the `views` fused before, over [`INDEPENDENT_VIEW_M`], at most 1 (1 with none).
+fn view_share(views: &VecDeque<[f64; 2]>, x: f64, y: f64) -> f64 {
+    views
+        .iter()
+        .map(|[vx, vy]| (x - vx).hypot(y - vy) / INDEPENDENT_VIEW_M)
+        .fold(1.0, f64::min)
 }
 
 /// Two heights fused by inverse variance.

@@ -21,6 +21,9 @@ impl WorldAggregate {
         edits: HashMap<(i32, i32), CellEdit>,
         paged: &dyn Fn((i32, i32)) -> bool,
     ) -> Result<Applied, AggregateError> {
+        if !edits.is_empty() {
+            self.views.clear();
+        }
         let mut dirty = BTreeSet::new();
         let mut applied = Applied::default();
         let mut edited_tiles = BTreeSet::new();

@@ -36,8 +36,67 @@ fn block() -> WorldAggregate {
         cells,
         inserts: 1,
         history: Vec::new(),
+        views: Vec::new(),
     })
     .expect("refit")
+}
+
+#[test]
+fn a_scan_from_where_the_last_stood_adds_nothing_and_a_near_one_adds_its_share() {
+    let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+    let mut agg = WorldAggregate::new(WorldParams::default());
+    fold(&mut agg, &terrain, 0.0, 0.0, 0.0);
+    let first = agg.cells().clone();
+    // Standing still: the same view again leaves every cell as it was.
+    fold(&mut agg, &terrain, 0.0, 0.0, 0.0);
+    assert_eq!(agg.cells(), &first);
+    // Creeping by less than the least share a scan: nothing until the distance from the last
+    // view that counted reaches it.
+    let creep = 0.4 * MIN_VIEW_SHARE * INDEPENDENT_VIEW_M;
+    fold(&mut agg, &terrain, creep, 0.0, 0.0);
+    fold(&mut agg, &terrain, 2.0 * creep, 0.0, 0.0);
+    assert_eq!(
+        agg.cells()
+            .iter()
+            .filter(|(c, cell)| first.get(c) == Some(cell))
+            .count(),
+        first.len()
+    );
+    fold(&mut agg, &terrain, 3.0 * creep, 0.0, 0.0);
+    assert!(agg
+        .cells()
+        .iter()
+        .any(|(c, cell)| first.get(c).is_some_and(|f| f != cell)));
+    let first = agg.cells().clone();
+    let fold_at = |agg: &mut WorldAggregate, x: f64| fold(agg, &terrain, 3.0 * creep + x, 0.0, 0.0);
+    // A quarter of the independent distance on: cells seen before take its height at a quarter
+    // of its weight (every view of flat ground gives about the same variance), new cells in full.
+    fold_at(&mut agg, 0.25 * INDEPENDENT_VIEW_M);
+    let (mut narrowed, mut new) = (Vec::new(), 0);
+    for (c, cell) in agg.cells() {
+        match first.get(c) {
+            Some(before) => narrowed.push(cell.var / before.var),
+            None => new += 1,
+        }
+    }
+    narrowed.sort_by(f64::total_cmp);
+    let median = narrowed[narrowed.len() / 2];
+    // Two independent views would halve it (0.5); a quarter of one leaves 1 / 1.25.
+    assert!((0.75..0.9).contains(&median), "variance ratio {median}");
+    assert!(new > 0, "the step uncovers new cells");
+    // A scan an independent distance away counts in full.
+    let mut far = WorldAggregate::new(WorldParams::default());
+    fold(&mut far, &terrain, 0.0, 0.0, 0.0);
+    let before = far.cells().clone();
+    fold(&mut far, &terrain, INDEPENDENT_VIEW_M, 0.0, 0.0);
+    let mut ratios: Vec<f64> = far
+        .cells()
+        .iter()
+        .filter_map(|(c, cell)| Some(cell.var / before.get(c)?.var))
+        .collect();
+    ratios.sort_by(f64::total_cmp);
+    let median = ratios[ratios.len() / 2];
+    assert!((0.4..0.6).contains(&median), "variance ratio {median}");
 }
 
 #[test]
