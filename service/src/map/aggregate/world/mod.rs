@@ -453,8 +453,8 @@ impl WorldAggregate {
                     continue;
                 }
                 // Where the cell holds earlier views, this one counts as its share of an
-                // independent view: its variance is divided by the share (none from where the
-                // last scans stood). A cell seen for the first time takes it in full.
+                // independent view: its variance is divided by the share (nothing under
+                // [`MIN_VIEW_SHARE`]). A cell seen for the first time takes it in full.
                 let var = match self.cells.contains_key(&c) {
                     false => var,
                     true if share >= MIN_VIEW_SHARE => var / share as f32,
