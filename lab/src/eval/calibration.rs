@@ -402,7 +402,7 @@ fn run_one(
         preset,
         &Drive {
             config: &opts.config,
-            scans: if opts.quick { 6 } else { 20 },
+            scans: opts.drive_scans(20, 6),
             step_m: opts.step_m,
             stop_scans: opts.stop_scans,
             path_seed: seed ^ 0xca1,

@@ -84,6 +84,10 @@ pub struct EvalOptions {
     /// Scans the calibration and layers drives take after their last step, standing still.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(..=1000))]
     pub stop_scans: u16,
+    /// Scans the calibration and layers drives take while moving (default: 20, 12 / 6 with
+    /// `--quick`): with `--step-m` it sets how far the robot has come when it is scored.
+    #[arg(long, value_parser = clap::value_parser!(u16).range(2..=1000))]
+    pub scans: Option<u16>,
 }
 
 /// Parses `--step-m`: a finite step in (0, 5] m.
@@ -287,6 +291,8 @@ pub struct FamilyOptions {
     pub step_m: f64,
     /// Scans those drives take after their last step, standing still.
     pub stop_scans: usize,
+    /// Scans those drives take while moving (`None`: each drive's own default).
+    pub scans: Option<usize>,
 }
 
 impl FamilyOptions {
@@ -298,7 +304,13 @@ impl FamilyOptions {
             config: Config::default(),
             step_m: 1.0,
             stop_scans: 0,
+            scans: None,
         }
+    }
+
+    /// Scans a drive takes while moving: `--scans`, else `full` (`quick` with `--quick`).
+    pub fn drive_scans(&self, full: usize, quick: usize) -> usize {
+        self.scans.unwrap_or(if self.quick { quick } else { full })
     }
 
     /// From the command line (`--config`, else the embedded defaults).
@@ -312,6 +324,7 @@ impl FamilyOptions {
             },
             step_m: opts.step_m,
             stop_scans: usize::from(opts.stop_scans),
+            scans: opts.scans.map(usize::from),
         })
     }
 }
@@ -361,4 +374,28 @@ fn write_report(
         overhang: None,
         failures,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[test]
+    fn scans_set_the_drives_length_and_a_single_scan_is_refused() {
+        let parse =
+            |args: &[&str]| EvalOptions::try_parse_from(["rangegp-eval", "layers"].iter().chain(args));
+        let opts = parse(&["--scans", "60"]).expect("parsed");
+        assert_eq!(opts.scans, Some(60));
+        let family = FamilyOptions::of(&opts).expect("defaults");
+        assert_eq!(family.drive_scans(20, 12), 60);
+        let quick = FamilyOptions::quick();
+        assert_eq!((quick.drive_scans(20, 12), quick.drive_scans(20, 6)), (12, 6));
+        let full = FamilyOptions::of(&parse(&[]).expect("parsed")).expect("defaults");
+        assert_eq!(full.drive_scans(20, 12), 20);
+        assert!(
+            parse(&["--scans", "1"]).is_err(),
+            "a drive of one scan has no step"
+        );
+    }
 }

@@ -364,7 +364,7 @@ fn run_case(
         preset,
         &Drive {
             config: &opts.config,
-            scans: if opts.quick { 12 } else { 20 },
+            scans: opts.drive_scans(20, 12),
             step_m: opts.step_m,
             stop_scans: opts.stop_scans,
             path_seed: seed ^ 0x1a7e,
