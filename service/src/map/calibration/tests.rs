@@ -118,6 +118,55 @@ fn a_return_tests_a_map_from_farther_where_one_answers_else_the_nearest() {
 }
 
 #[test]
+fn observing_a_scan_learns_from_a_map_that_looked_from_farther_where_one_answers() {
+    // A map fitted 1 m back over ground 5 cm higher than the ground now scanned, and an exact
+    // map 0.1 m back. The scan's returns must test the first: the robot stands beside the
+    // second, on its rings.
+    let fit = |ground_z: f64, x: f64, sequence: u64| {
+        let terrain = Heightmap::flat(40.0, 0.05, ground_z);
+        let pose = Isometry3::from_parts(
+            Translation3::new(x, 0.0, 0.75 + ground_z),
+            UnitQuaternion::identity(),
+        );
+        let mut scan = scan_of(&terrain, pose);
+        scan.sequence = sequence;
+        Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit"))
+    };
+    let sd_after_one_scan = |biased_back_m: f64| {
+        let mut window = Window::new(16);
+        window.push(fit(0.05, -biased_back_m, 1));
+        window.push(fit(0.0, -0.1, 2));
+        let snapshot = window.snapshot();
+        let scan = scan_over_flat(0.0, 3);
+        let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        let mut calibrator = Calibrator::new(false);
+        let answered = calibrator.observe(&snapshot, &scan, &map);
+        assert!(answered >= MIN_RESIDUALS, "{answered} returns answered");
+        let a = query::raw_elevation(&snapshot, 5.0, 0.5).expect("answered");
+        assert_eq!(
+            a.by,
+            Answerer::Window(0),
+            "queries take the exact map beside the robot"
+        );
+        calibrator
+            .scales()
+            .calibrate(Source::Window, a.rho_m, &a.estimate)
+            .var_m2
+            .sqrt()
+    };
+    let from_farther = sd_after_one_scan(1.0);
+    let beside = sd_after_one_scan(0.3);
+    assert!(
+        from_farther > 0.02,
+        "the map 1 m back errs by 5 cm, σ {from_farther}"
+    );
+    assert!(
+        beside < 0.25 * from_farther,
+        "no map lay 0.5 m back: the nearest is tested, σ {beside} against {from_farther}"
+    );
+}
+
+#[test]
 fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
     let mut residuals = Residuals::default();
     let r = |sd: f64| Residual {
