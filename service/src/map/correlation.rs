@@ -4,12 +4,17 @@
 //!
 //! Pairs of a new scan's returns a footprint apart are answered by the maps as they stood before
 //! the scan. For a pair (p, q) with residuals eₚ, e_q, the maps' calibrated σₚ, σ_q and the
-//! returns' noise variances nₚ, n_q (independent between returns), the correlation of the maps'
-//! errors is the correlation coefficient of the standardised residuals, the noise taken out of
-//! their variances: ρ = Σ eₚe_q/(σₚσ_q) / √(Σ (eₚ² − nₚ)/σₚ² · Σ (e_q² − n_q)/σ_q²). It needs no
-//! assumption on how wide σ is (the calibration targets coverage, not variance, and the errors
-//! are heavy-tailed). The Matérn-3/2 length whose mean correlation at the pairs' separations
-//! matches ρ is the one planner layers use.
+//! returns' noise variances nₚ, n_q (independent between returns), each residual is standardised
+//! by its whole predicted spread, zₚ = eₚ / √(σₚ² + nₚ), and clipped to ±[`CLIP_SD`]; the noise's
+//! share of its variance is mₚ = nₚ / (σₚ² + nₚ). The correlation of the maps' errors is then
+//! ρ = Σ zₚz_q / √(Σ (zₚ² − mₚ) · Σ (z_q² − m_q)): the correlation of the residuals with the noise
+//! taken out of their variances. It needs no assumption on how wide σ is (a σ off by a factor k
+//! scales both sides alike; the calibration targets coverage, not variance). The clip keeps a
+//! few wild pairs of heavy-tailed errors from deciding it, and the whole spread keeps pairs whose
+//! returns' noise dwarfs σ from swamping the sums (divided by σ alone, a pair with σ of a
+//! millimetre and 3 cm of noise adds a square that is noise 900 times over: such sums cancel to
+//! nearly nothing and ρ runs to 1). The Matérn-3/2 length whose mean correlation at the pairs'
+//! separations matches ρ is the one planner layers use.
 
 use super::scales::ErrorCorrelation;
 use std::collections::VecDeque;
@@ -22,13 +27,16 @@ pub const PAIR_MEMORY: usize = 4000;
 pub const MIN_PAIRS: usize = 300;
 /// Bounds of the estimated length, metres.
 pub const LENGTH_BOUNDS_M: (f64, f64) = (0.05, 5.0);
+/// Standardised residuals are clipped to ± this (a Gaussian's lose under 0.1 % of their
+/// variance; a heavy tail's few wild pairs lose their hold on the sums).
+pub const CLIP_SD: f64 = 4.0;
 
 /// One tested pair's standardised terms.
 #[derive(Debug, Clone, Copy)]
 struct Pair {
-    /// eₚe_q / (σₚσ_q).
+    /// zₚz_q.
     cross: f64,
-    /// (eₚ² − nₚ) / σₚ² and (e_q² − n_q) / σ_q².
+    /// zₚ² − mₚ and z_q² − m_q.
     square: [f64; 2],
     /// Separation, metres.
     d: f64,
@@ -58,18 +66,21 @@ impl CorrelationLearner {
     /// Adds tested pairs (those with a non-finite term or no σ are skipped).
     pub fn observe(&mut self, pairs: &[PairResidual]) {
         for p in pairs {
-            let [e1, e2] = p.residual_m;
             let [s1, s2] = p.sd_m;
+            let [n1, n2] = p.noise_var_m2;
+            if !(s1 > 0.0 && s2 > 0.0 && n1 >= 0.0 && n2 >= 0.0) {
+                continue;
+            }
+            let (v1, v2) = (s1 * s1 + n1, s2 * s2 + n2);
+            let [z1, z2] = [p.residual_m[0] / v1.sqrt(), p.residual_m[1] / v2.sqrt()]
+                .map(|z| z.clamp(-CLIP_SD, CLIP_SD));
             let pair = Pair {
-                cross: e1 * e2 / (s1 * s2),
-                square: [
-                    (e1 * e1 - p.noise_var_m2[0]) / (s1 * s1),
-                    (e2 * e2 - p.noise_var_m2[1]) / (s2 * s2),
-                ],
+                cross: z1 * z2,
+                square: [z1 * z1 - n1 / v1, z2 * z2 - n2 / v2],
                 d: p.separation_m,
             };
             let finite = pair.cross.is_finite() && pair.square.iter().all(|v| v.is_finite());
-            if !(finite && s1 > 0.0 && s2 > 0.0 && pair.d.is_finite()) {
+            if !(finite && pair.d.is_finite()) {
                 continue;
             }
             if self.pairs.len() == PAIR_MEMORY {
@@ -148,6 +159,61 @@ mod tests {
         assert!(
             (got / truth.length_m - 1.0).abs() < 0.25,
             "learnt {got} m for 0.8 m"
+        );
+    }
+
+    /// Pairs of errors correlated by `truth`, each error of sd `sd` plus the returns' noise of sd
+    /// `noise`, at separations across the learner's range.
+    fn pairs(
+        truth: ErrorCorrelation,
+        sd: f64,
+        noise: f64,
+        count: usize,
+        rng: &mut impl Rng,
+    ) -> Vec<PairResidual> {
+        (0..count)
+            .map(|_| {
+                let d = rng.random_range(PAIR_SEPARATION_M.0..PAIR_SEPARATION_M.1);
+                let rho = truth.at(d);
+                let (a, b) = (normal(rng), normal(rng));
+                PairResidual {
+                    residual_m: [
+                        sd * a + noise * normal(rng),
+                        sd * (rho * a + (1.0 - rho * rho).sqrt() * b) + noise * normal(rng),
+                    ],
+                    sd_m: [sd; 2],
+                    noise_var_m2: [noise * noise; 2],
+                    separation_m: d,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn pairs_whose_noise_dwarfs_sigma_and_two_wild_pairs_do_not_decide_the_length() {
+        let truth = ErrorCorrelation { length_m: 0.25 };
+        assert_ne!(truth, ErrorCorrelation::default());
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        // Where the maps are sure (σ 1 mm) and the returns noisy (3 cm), as a VLP-16's near
+        // its own data; the rest as elsewhere.
+        let mut all = pairs(truth, 0.02, 0.01, 2200, &mut rng);
+        all.extend(pairs(truth, 0.001, 0.03, 1760, &mut rng));
+        // Two wild pairs: both returns a metre off the same way (a shadow's edge), 50 σ.
+        all.extend((0..2).map(|k| PairResidual {
+            residual_m: [1.0; 2],
+            sd_m: [0.02; 2],
+            noise_var_m2: [1e-4; 2],
+            separation_m: 0.2 + 0.1 * k as f64,
+        }));
+        use rand::seq::SliceRandom;
+        all.shuffle(&mut rng);
+        let mut learner = CorrelationLearner::default();
+        learner.observe(&all);
+        let got = learner.correlation().length_m;
+        assert!(
+            (got / truth.length_m - 1.0).abs() < 0.25,
+            "learnt {got} m for {} m",
+            truth.length_m
         );
     }
 }
