@@ -325,7 +325,8 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
         ScannerPreset::seed000(),
         ScannerPreset::vlp16().with_device_noise(),
         ScannerPreset::os1_64(1024).with_device_noise(),
-    ];
+    ]
+    .map(|p| opts.mounted(p));
     let mut cells = Vec::new();
     for spec in &terrains {
         eprintln!("calibration: terrain {} …", spec.name);

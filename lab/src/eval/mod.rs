@@ -22,7 +22,7 @@ use anyhow::Result;
 use local::{print_local, run_local, LocalOptions, LocalReport};
 use overhang::{print_overhang, run_overhang, OverhangOptions, OverhangReport};
 use rangegp_service::config::Config;
-use rangegp_sim::{CraterParams, Heightmap};
+use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -88,6 +88,21 @@ pub struct EvalOptions {
     /// `--quick`): with `--step-m` it sets how far the robot has come when it is scored.
     #[arg(long, value_parser = clap::value_parser!(u16).range(2..=1000))]
     pub scans: Option<u16>,
+    /// Height of every sensor above the ground in the calibration and layers drives, metres
+    /// (default: each preset's, 0.75 m). The daemon's `gp.sensor_height_m` stays as configured:
+    /// a robot whose mount the defaults do not know.
+    #[arg(long, value_parser = mount_of)]
+    pub mount_m: Option<f64>,
+}
+
+/// Parses `--mount-m`: a finite height in [0.2, 5] m.
+fn mount_of(s: &str) -> std::result::Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
+    if v.is_finite() && (0.2..=5.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{s}: the mount height must lie in [0.2, 5] m"))
+    }
 }
 
 /// Parses `--step-m`: a finite step in (0, 5] m.
@@ -293,6 +308,8 @@ pub struct FamilyOptions {
     pub stop_scans: usize,
     /// Scans those drives take while moving (`None`: each drive's own default).
     pub scans: Option<usize>,
+    /// Sensor height above the ground in those drives, metres (`None`: each preset's own).
+    pub mount_m: Option<f64>,
 }
 
 impl FamilyOptions {
@@ -305,6 +322,15 @@ impl FamilyOptions {
             step_m: 1.0,
             stop_scans: 0,
             scans: None,
+            mount_m: None,
+        }
+    }
+
+    /// `preset` mounted at `--mount-m` when given.
+    pub fn mounted(&self, preset: ScannerPreset) -> ScannerPreset {
+        ScannerPreset {
+            mount_height_m: self.mount_m.unwrap_or(preset.mount_height_m),
+            ..preset
         }
     }
 
@@ -325,6 +351,7 @@ impl FamilyOptions {
             step_m: opts.step_m,
             stop_scans: usize::from(opts.stop_scans),
             scans: opts.scans.map(usize::from),
+            mount_m: opts.mount_m,
         })
     }
 }
@@ -397,5 +424,18 @@ mod tests {
             parse(&["--scans", "1"]).is_err(),
             "a drive of one scan has no step"
         );
+    }
+
+    #[test]
+    fn a_mount_height_moves_every_sensor_and_an_absurd_one_is_refused() {
+        let parse =
+            |args: &[&str]| EvalOptions::try_parse_from(["rangegp-eval", "calibration"].iter().chain(args));
+        let family = FamilyOptions::of(&parse(&["--mount-m", "1.5"]).expect("parsed")).expect("defaults");
+        let vlp16 = ScannerPreset::vlp16();
+        assert_eq!(family.mounted(vlp16.clone()).mount_height_m, 1.5);
+        assert_eq!(FamilyOptions::quick().mounted(vlp16.clone()), vlp16);
+        for bad in ["0", "-1", "9", "nan"] {
+            assert!(parse(&["--mount-m", bad]).is_err(), "{bad} m accepted");
+        }
     }
 }

@@ -218,11 +218,14 @@ pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
         .into_iter()
         .filter(|t| names.is_empty() || names.contains(&t.name.as_str()))
         .collect();
-    let sensors = if opts.quick {
+    let sensors: Vec<ScannerPreset> = if opts.quick {
         vec![ScannerPreset::vlp16()]
     } else {
         vec![ScannerPreset::vlp16(), ScannerPreset::os1_64(1024)]
-    };
+    }
+    .into_iter()
+    .map(|p| opts.mounted(p))
+    .collect();
     let pairs_per_case = if opts.quick {
         MIN_PAIRS.div_ceil(terrains.len() * sensors.len())
     } else {
