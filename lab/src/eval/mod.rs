@@ -97,21 +97,25 @@ pub struct EvalOptions {
 
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
 fn mount_of(s: &str) -> std::result::Result<f64, String> {
-    let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
-    if v.is_finite() && (0.2..=5.0).contains(&v) {
-        Ok(v)
-    } else {
-        Err(format!("{s}: the mount height must lie in [0.2, 5] m"))
-    }
+    metres(
+        s,
+        |v| (0.2..=5.0).contains(&v),
+        "the mount height must lie in [0.2, 5] m",
+    )
 }
 
 /// Parses `--step-m`: a finite step in (0, 5] m.
 fn step_of(s: &str) -> std::result::Result<f64, String> {
+    metres(s, |v| v > 0.0 && v <= 5.0, "the step must lie in (0, 5] m")
+}
+
+/// A finite number of metres that `within` accepts, else `why`.
+fn metres(s: &str, within: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
-    if v.is_finite() && v > 0.0 && v <= 5.0 {
+    if v.is_finite() && within(v) {
         Ok(v)
     } else {
-        Err(format!("{s}: the step must lie in (0, 5] m"))
+        Err(format!("{s}: {why}"))
     }
 }
 

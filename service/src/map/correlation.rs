@@ -139,21 +139,7 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         let mut learner = CorrelationLearner::default();
         assert_eq!(learner.correlation(), ErrorCorrelation::default());
-        let mut pairs = Vec::new();
-        for _ in 0..PAIR_MEMORY {
-            let d = rng.random_range(PAIR_SEPARATION_M.0..PAIR_SEPARATION_M.1);
-            let rho = truth.at(d);
-            let (s1, s2, noise) = (0.02, 0.03, 0.01f64);
-            let (a, b) = (normal(&mut rng), normal(&mut rng));
-            let e1 = s1 * a + noise * normal(&mut rng);
-            let e2 = s2 * (rho * a + (1.0 - rho * rho).sqrt() * b) + noise * normal(&mut rng);
-            pairs.push(PairResidual {
-                residual_m: [e1, e2],
-                sd_m: [s1, s2],
-                noise_var_m2: [noise * noise; 2],
-                separation_m: d,
-            });
-        }
+        let pairs = pairs(truth, [0.02, 0.03], 0.01, PAIR_MEMORY, &mut rng);
         learner.observe(&pairs);
         let got = learner.correlation().length_m;
         assert!(
@@ -162,11 +148,11 @@ mod tests {
         );
     }
 
-    /// Pairs of errors correlated by `truth`, each error of sd `sd` plus the returns' noise of sd
+    /// Pairs of errors correlated by `truth`, the errors of sd `sd` plus the returns' noise of sd
     /// `noise`, at separations across the learner's range.
     fn pairs(
         truth: ErrorCorrelation,
-        sd: f64,
+        sd: [f64; 2],
         noise: f64,
         count: usize,
         rng: &mut impl Rng,
@@ -178,10 +164,10 @@ mod tests {
                 let (a, b) = (normal(rng), normal(rng));
                 PairResidual {
                     residual_m: [
-                        sd * a + noise * normal(rng),
-                        sd * (rho * a + (1.0 - rho * rho).sqrt() * b) + noise * normal(rng),
+                        sd[0] * a + noise * normal(rng),
+                        sd[1] * (rho * a + (1.0 - rho * rho).sqrt() * b) + noise * normal(rng),
                     ],
-                    sd_m: [sd; 2],
+                    sd_m: sd,
                     noise_var_m2: [noise * noise; 2],
                     separation_m: d,
                 }
@@ -196,8 +182,8 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         // Where the maps are sure (σ 1 mm) and the returns noisy (3 cm), as a VLP-16's near
         // its own data; the rest as elsewhere.
-        let mut all = pairs(truth, 0.02, 0.01, 2200, &mut rng);
-        all.extend(pairs(truth, 0.001, 0.03, 1760, &mut rng));
+        let mut all = pairs(truth, [0.02; 2], 0.01, 2200, &mut rng);
+        all.extend(pairs(truth, [0.001; 2], 0.03, 1760, &mut rng));
         // Two wild pairs: both returns a metre off the same way (a shadow's edge), 50 σ.
         all.extend((0..2).map(|k| PairResidual {
             residual_m: [1.0; 2],
