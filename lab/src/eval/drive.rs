@@ -91,10 +91,9 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
     };
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());
-    let mut calibrator = config
-        .gp
-        .prequential_calibration
-        .then(|| Calibrator::new(config.gp.unseen_relief));
+    let mut calibrator = config.gp.prequential_calibration.then(|| {
+        Calibrator::new(config.gp.unseen_relief).with_view_disagreement(config.gp.view_disagreement)
+    });
     let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
     for (header, points) in &messages {
         let input = validate(header, points, &limits, 0)

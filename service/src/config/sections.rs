@@ -218,6 +218,12 @@ pub struct GpConfig {
     /// window rays' σ on gentle terrain and widens the quick matrix's 68 % coverage
     /// (docs/EVALUATION.md "Calibration", step 6).
     pub unseen_relief: bool,
+    /// Weight, in σ per metre of disagreement, of the other window maps' disagreement with a
+    /// window answer that lies over 1 m from its map's data (the smallest distance, along
+    /// another map's ray, between that map's surface and the answered point): a map's smooth
+    /// continuation into a shadow is not what other views see there. 0 turns it off; needs the
+    /// prequential calibration (docs/EVALUATION.md "Calibration", step 9).
+    pub view_disagreement: f64,
 }
 
 /// Online hyperparameter learning (a thread of its own, never on the ingest path).
@@ -386,6 +392,7 @@ impl Default for GpConfig {
             variance_calibration: crate::map::tiles::VarianceCalibration::LocalLeaveOneOut,
             prequential_calibration: true,
             unseen_relief: false,
+            view_disagreement: crate::map::calibration::DEFAULT_VIEW_DISAGREEMENT,
         }
     }
 }

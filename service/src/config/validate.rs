@@ -44,7 +44,7 @@ impl Config {
             i.service_name.is_empty() || iceoryx2::prelude::ServiceName::new(&i.service_name).is_ok();
         let listen_ok =
             self.metrics.listen.is_empty() || self.metrics.listen.parse::<std::net::SocketAddr>().is_ok();
-        let checks: [(bool, &'static str, &str); 44] = [
+        let checks: [(bool, &'static str, &str); 45] = [
             (
                 MapKeys::new(&self.map_id).is_ok(),
                 "map_id",
@@ -138,6 +138,11 @@ impl Config {
                 "must be positive",
             ),
             (positive(g.length_scale), "gp.length_scale", "must be positive"),
+            (
+                (0.0..=10.0).contains(&g.view_disagreement),
+                "gp.view_disagreement",
+                "must be a weight in [0, 10]",
+            ),
             (
                 g.sphere_radius_m.is_none_or(positive),
                 "gp.sphere_radius_m",

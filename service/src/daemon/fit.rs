@@ -26,6 +26,8 @@ pub(super) struct FitOutputs {
     pub calibrate: bool,
     /// Add the unseen relief (always learnt with them) to window answers' σ (`gp.unseen_relief`).
     pub relief: bool,
+    /// Weight of the other maps' disagreement far from data (`gp.view_disagreement`).
+    pub view_disagreement: f64,
     /// Where a [`MapUpdate`] goes when a scan's map is published.
     pub updates: zenoh::pubsub::Publisher<'static>,
 }
@@ -40,7 +42,9 @@ pub(super) fn fit_loop(
     shutdown: &Shutdown,
 ) {
     let mut window = Window::new(capacity);
-    let mut calibrator = outputs.calibrate.then(|| Calibrator::new(outputs.relief));
+    let mut calibrator = outputs
+        .calibrate
+        .then(|| Calibrator::new(outputs.relief).with_view_disagreement(outputs.view_disagreement));
     while !shutdown.is_triggered() {
         let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
             continue;

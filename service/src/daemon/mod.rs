@@ -286,6 +286,7 @@ impl DaemonBuilder {
                 aggregate: aggregate_feed,
                 calibrate: config.gp.prequential_calibration,
                 relief: config.gp.unseen_relief,
+                view_disagreement: config.gp.view_disagreement,
                 updates,
             };
             daemon.fitter = Some(spawn("rangegp-fit", move || {

@@ -70,7 +70,7 @@ pub fn raw_elevation_of(snapshot: &MapSnapshot, i: usize, x: f64, y: f64) -> Opt
     let map = snapshot.maps().get(i)?;
     let [sx, sy, _] = *snapshot.reach().get(i)?;
     map.elevation(x, y).map(|estimate| RawAnswer {
-        estimate,
+        estimate: with_disagreement(snapshot, i, x, y, estimate),
         by: Answerer::Window(i),
         rho_m: (x - sx).hypot(y - sy),
     })
@@ -136,17 +136,19 @@ fn search(
         rho_m: rho(i),
     };
     let mut best: Option<RawAnswer> = None;
+    let elev =
+        |i: usize, m: &Arc<LocalRangeMap>| m.elevation(x, y).map(|e| with_disagreement(snapshot, i, x, y, e));
     for (i, m) in nearest(snapshot, x, y) {
         if let Some(first) = &best {
             let gap = rho(i) - first.rho_m;
             if !blend || gap >= BLEND_M {
                 break;
             }
-            if let Some(e) = m.elevation(x, y) {
+            if let Some(e) = elev(i, m) {
                 let weight = 0.5 * (1.0 - smoothstep(gap / BLEND_M));
                 return Some((*first, Some((window(i, e), weight))));
             }
-        } else if let Some(e) = m.elevation(x, y) {
+        } else if let Some(e) = elev(i, m) {
             best = Some(window(i, e));
         }
     }
@@ -162,6 +164,49 @@ fn search(
         };
         (answer, None)
     })
+}
+
+/// Where a window answer lies farther than this from its map's data (metres), the other window
+/// maps' disagreement with it starts to count in its variance ...
+pub const DISAGREEMENT_FROM_M: f64 = 1.0;
+/// ... fully from this distance on (smoothly in between, so that σ never steps).
+pub const DISAGREEMENT_FULL_M: f64 = 3.0;
+
+/// `estimate` (window map `i`'s answer at (x, y)) with the other window maps' disagreement added
+/// to its variance where it lies far from its data: (w · |g|)², w the scales'
+/// `view_disagreement` and |g| the smallest distance, along another map's ray, between that
+/// map's mean surface and the answered point, over the [`CANDIDATES`] other maps whose sensors
+/// are nearest (x, y) (all 15 others: fewer cells in both bounds, and 16 % more time on a grid).
+/// Far from data an answer is the map's smooth continuation across a gap between its rings;
+/// where that gap is the shadow of relief, the continuation is a curtain from the ridge to the
+/// ground beyond, which views from elsewhere do not share, while seen ground between rings is
+/// continued much alike by every view (docs/EVALUATION.md "Calibration", step 9).
+fn with_disagreement(
+    snapshot: &MapSnapshot,
+    i: usize,
+    x: f64,
+    y: f64,
+    estimate: HeightEstimate,
+) -> HeightEstimate {
+    let weight = snapshot.scales.view_disagreement;
+    if weight <= 0.0 || estimate.data_m <= DISAGREEMENT_FROM_M {
+        return estimate;
+    }
+    let p = Vector3::new(x, y, estimate.z);
+    let gap = nearest_where(snapshot, x, y, |j| j != i)
+        .into_iter()
+        .filter_map(|(_, m)| m.gap_at(&p))
+        .map(f64::abs)
+        .fold(f64::INFINITY, f64::min);
+    if !gap.is_finite() {
+        return estimate;
+    }
+    let ramp =
+        smoothstep((estimate.data_m - DISAGREEMENT_FROM_M) / (DISAGREEMENT_FULL_M - DISAGREEMENT_FROM_M));
+    HeightEstimate {
+        var: estimate.var + ramp * (weight * gap).powi(2),
+        ..estimate
+    }
 }
 
 /// Elevation at (x, y): [`blended_elevation`], each map's σ scaled by the snapshot's calibration
@@ -390,7 +435,7 @@ pub fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{family_terrain, params, scan_of};
+    use crate::map::test_support::{family_terrain, params, scan_by, scan_of};
     use crate::map::Window;
     use rand::{Rng, SeedableRng};
 
@@ -409,6 +454,70 @@ mod tests {
             poses.push(pose);
         }
         (window.snapshot(), poses)
+    }
+
+    #[test]
+    fn far_from_its_data_an_answer_counts_the_other_views_disagreement() {
+        // Four VLP-16 scans a metre apart over rough relief: between its rings and behind
+        // crests, ground lies metres from any return.
+        let terrain = family_terrain("fbm-h05-30deg", 2, 60.0);
+        let preset = rangegp_sim::ScannerPreset::vlp16();
+        let path = rangegp_sim::Path::wander(7, &terrain, 4, 1.0, 0.1);
+        let mut window = Window::new(4);
+        let mut poses = Vec::new();
+        for k in 0..4 {
+            let pose = path.pose(&terrain, k, preset.mount_height_m);
+            let mut scan = scan_by(&preset, &terrain, pose);
+            scan.sequence = k as u64 + 1;
+            window.push(Arc::new(LocalRangeMap::fit(&scan, &params()).expect("fit")));
+            poses.push(pose);
+        }
+        let plain = window.snapshot();
+        let mut scales = plain.scales;
+        scales.view_disagreement = 0.3;
+        let with = plain.with_aggregate(None).with_scales(scales);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let (mut near, mut far, mut widened) = (0, 0, 0);
+        for _ in 0..20_000 {
+            let pose = poses[rng.random_range(0..poses.len())];
+            let (r, a) = (rng.random_range(2.0..25.0), rng.random_range(-3.1..3.1));
+            let p = pose * nalgebra::Point3::new(r * f64::cos(a), r * f64::sin(a), 0.0);
+            let i = rng.random_range(0..plain.maps().len());
+            let (Some(own), Some(counted)) = (
+                raw_elevation_of(&plain, i, p.x, p.y),
+                raw_elevation_of(&with, i, p.x, p.y),
+            ) else {
+                continue;
+            };
+            let (e, c) = (own.estimate, counted.estimate);
+            assert_eq!(e.z, c.z, "the mean is the map's own");
+            if e.data_m <= DISAGREEMENT_FROM_M {
+                near += 1;
+                assert_eq!(e.var, c.var, "near its data an answer is the map's own");
+                continue;
+            }
+            let q = Vector3::new(p.x, p.y, e.z);
+            let gap = nearest_where(&plain, p.x, p.y, |j| j != i)
+                .into_iter()
+                .filter_map(|(_, m)| m.gap_at(&q))
+                .map(f64::abs)
+                .fold(f64::INFINITY, f64::min);
+            if e.data_m >= DISAGREEMENT_FULL_M && gap.is_finite() {
+                far += 1;
+                let expected = e.var + (0.3 * gap).powi(2);
+                assert!(
+                    (c.var - expected).abs() <= 1e-12 + 1e-9 * expected,
+                    "{} vs {expected}",
+                    c.var
+                );
+                widened += usize::from(c.var > 4.0 * e.var);
+            }
+        }
+        assert!(near > 1_000 && far > 500, "near {near}, far {far}");
+        assert!(
+            widened > 0,
+            "some far answer disagrees with another view by far more than its σ"
+        );
     }
 
     #[test]

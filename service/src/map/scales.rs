@@ -158,6 +158,9 @@ pub struct SigmaScales {
     pub relief: Relief,
     /// Whether window answers' variance includes the relief (`gp.unseen_relief`).
     pub relief_in_heights: bool,
+    /// Weight of the other window maps' disagreement in a window answer's variance far from
+    /// its data (`gp.view_disagreement`; 0: not counted).
+    pub view_disagreement: f64,
     /// Aggregate answers (range from the newest sensor position; all in the last class).
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).

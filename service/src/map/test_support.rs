@@ -59,8 +59,12 @@ pub(crate) fn scan_at_centre(terrain: &Heightmap) -> ScanInput {
 
 /// A noisy seed-000 scan of `terrain` from `pose` (returns only).
 pub(crate) fn scan_of(terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
-    let preset = ScannerPreset::seed000();
-    let rays = simulate_scan(terrain, &pose, &preset, &mut rand_pcg::Pcg64::seed_from_u64(5));
+    scan_by(&ScannerPreset::seed000(), terrain, pose)
+}
+
+/// A noisy scan of `terrain` by `preset` from `pose` (returns only).
+pub(crate) fn scan_by(preset: &ScannerPreset, terrain: &Heightmap, pose: Isometry3<f64>) -> ScanInput {
+    let rays = simulate_scan(terrain, &pose, preset, &mut rand_pcg::Pcg64::seed_from_u64(5));
     ScanInput {
         publisher_id: 1,
         sequence: 1,

@@ -18,6 +18,11 @@ use super::query::{self, Answerer};
 use super::relief::ReliefLearner;
 use super::scales::{bin_of, class_of, SigmaScales, TailShape, BINS, CLASSES};
 use super::window::MapSnapshot;
+
+/// Default weight of the other window maps' disagreement in a window answer's variance far from
+/// its data (`gp.view_disagreement`; chosen on the full calibration matrix among 0.3 and 0.5,
+/// docs/EVALUATION.md "Calibration", step 9).
+pub const DEFAULT_VIEW_DISAGREEMENT: f64 = 0.3;
 use super::LocalRangeMap;
 use crate::gp::sphere;
 use crate::scan::ScanInput;
@@ -72,11 +77,20 @@ pub struct Calibrator {
 impl Calibrator {
     /// A calibrator with nothing learnt. It learns the relief unseen between data
     /// ([`super::relief`]) from maps that index their data, for planner layers; with
-    /// `relief_in_heights` it also adds it to window answers' σ (`gp.unseen_relief`).
+    /// `relief_in_heights` it also adds it to window answers' σ (`gp.unseen_relief`). Window
+    /// answers far from their data count the other maps' disagreement with the default weight
+    /// ([`Self::with_view_disagreement`]).
     pub fn new(relief_in_heights: bool) -> Self {
         let mut calibrator = Self::default();
         calibrator.scales.relief_in_heights = relief_in_heights;
+        calibrator.scales.view_disagreement = DEFAULT_VIEW_DISAGREEMENT;
         calibrator
+    }
+
+    /// The same calibrator with another weight on the maps' disagreement (`gp.view_disagreement`).
+    pub fn with_view_disagreement(mut self, weight: f64) -> Self {
+        self.scales.view_disagreement = weight;
+        self
     }
 
     /// The current scales.

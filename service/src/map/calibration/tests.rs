@@ -85,6 +85,7 @@ fn before_the_first_map_nothing_is_learnt() {
     assert_eq!(calibrator.observe(&MapSnapshot::default(), &scan, &map), 0);
     let nothing = SigmaScales {
         relief_in_heights: true,
+        view_disagreement: DEFAULT_VIEW_DISAGREEMENT,
         ..SigmaScales::default()
     };
     assert_eq!(calibrator.scales(), nothing);
