@@ -2,6 +2,7 @@
 
 use super::aggregate::Aggregate;
 use super::local::{HeightEstimate, RayEstimate};
+use super::scales::MAX_SD_FACTOR;
 use super::tiles::smoothstep;
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
@@ -203,9 +204,22 @@ fn with_disagreement(
     }
     let ramp =
         smoothstep((estimate.data_m - DISAGREEMENT_FROM_M) / (DISAGREEMENT_FULL_M - DISAGREEMENT_FROM_M));
+    let var = estimate.var + ramp * (weight * gap).powi(2);
+    // The point's σ along the ray widens with the height's, as the calibration's factor does.
+    let widen = widening(estimate.var, var);
     HeightEstimate {
-        var: estimate.var + ramp * (weight * gap).powi(2),
+        var,
+        point_sd: estimate.point_sd.map(|s| s * widen),
         ..estimate
+    }
+}
+
+/// The factor on σ from a map's own variance `own` to `widened` (1 where the map is certain).
+fn widening(own: f64, widened: f64) -> f64 {
+    if own > 0.0 {
+        (widened / own).sqrt()
+    } else {
+        1.0
     }
 }
 
@@ -311,11 +325,12 @@ pub fn variance(snapshot: &MapSnapshot, x: f64, y: f64) -> VarianceItem {
 pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     let origin = Vector3::from(ray.origin_m);
     let dir = Vector3::from(ray.direction).normalize();
-    let mut near: Vec<(f64, &Arc<LocalRangeMap>)> = snapshot
+    let mut near: Vec<(f64, usize, &Arc<LocalRangeMap>)> = snapshot
         .maps()
         .iter()
-        .map(|m| ((m.sensor_position() - origin).norm(), m))
-        .filter(|(d, m)| *d < m.max_range() + ray.max_range_m)
+        .enumerate()
+        .map(|(i, m)| ((m.sensor_position() - origin).norm(), i, m))
+        .filter(|(d, _, m)| *d < m.max_range() + ray.max_range_m)
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0));
     // Each map casts with its own calibrated σ, so that a grazing ray's band, its range variance
@@ -323,8 +338,8 @@ pub fn ray(snapshot: &MapSnapshot, ray: &Ray) -> RayItem {
     let answers: Vec<_> = near
         .into_iter()
         .take(CANDIDATES)
-        .filter_map(|(_, m)| {
-            let factor = |p: &Vector3<f64>| map_sd_factor(snapshot, m, p);
+        .filter_map(|(_, i, m)| {
+            let factor = |p: &Vector3<f64>| map_sd_factor(snapshot, i, p);
             m.cast(origin, dir, ray.max_range_m, &factor)
         })
         .collect();
@@ -396,15 +411,20 @@ fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
     })
 }
 
-/// The σ factor window map `map`'s own height answer at map point `p` gets (its range σ there
-/// is what a ray it casts scales: its distance from its own data, not from the nearest map's);
-/// [`sd_factor`] where it gives none.
-fn map_sd_factor(snapshot: &MapSnapshot, map: &LocalRangeMap, p: &Vector3<f64>) -> f64 {
+/// The factor from window map `i`'s own σ to its calibrated height answer's at map point `p`
+/// (its range σ there is what a ray it casts scales: its distance from its own data and the
+/// other views' disagreement with it, not the nearest map's); [`sd_factor`] where it gives none.
+fn map_sd_factor(snapshot: &MapSnapshot, i: usize, p: &Vector3<f64>) -> f64 {
+    let Some(map) = snapshot.maps().get(i) else {
+        return sd_factor(snapshot, Source::Window, p);
+    };
     match map.elevation(p.x, p.y) {
-        Some(e) => {
+        Some(own) => {
             let s = map.sensor_position();
             let rho = (p.x - s.x).hypot(p.y - s.y);
-            snapshot.scales.calibrate(Source::Window, rho, &e).sd_factor
+            let e = with_disagreement(snapshot, i, p.x, p.y, own);
+            let factor = snapshot.scales.calibrate(Source::Window, rho, &e).sd_factor;
+            (factor * widening(own.var, e.var)).min(MAX_SD_FACTOR.max(factor))
         }
         None => sd_factor(snapshot, Source::Window, p),
     }
@@ -511,6 +531,12 @@ mod tests {
                     c.var
                 );
                 widened += usize::from(c.var > 4.0 * e.var);
+                // The point's σ and the σ factor of a ray this map casts widen with the height's.
+                let widen = (c.var / e.var).sqrt();
+                let z_sd = e.point_sd[2] * widen;
+                assert!((c.point_sd[2] - z_sd).abs() <= 1e-12 + 1e-9 * z_sd);
+                let ray_factor = map_sd_factor(&with, i, &q);
+                assert!((ray_factor - widen.min(MAX_SD_FACTOR)).abs() <= 1e-9 * widen);
             }
         }
         assert!(near > 1_000 && far > 500, "near {near}, far {far}");
@@ -616,11 +642,12 @@ mod tests {
         };
         scales.relief.var_m2 = std::array::from_fn(|b| 1e-3 * crate::map::scales::data_centre_m(b));
         let snapshot = window.snapshot().with_scales(scales);
-        let back = snapshot
+        let back_index = snapshot
             .maps()
             .iter()
-            .find(|m| m.sensor_position().x < -4.0)
+            .position(|m| m.sensor_position().x < -4.0)
             .expect("the back map");
+        let back = &snapshot.maps()[back_index];
         // Where the back map's data lie farthest beyond the nearest map's.
         let (gap, p, own_estimate) = (0..=24)
             .flat_map(|i| (0..=16).map(move |j| (3.0 + 0.25 * f64::from(i), -2.0 + 0.25 * f64::from(j))))
@@ -632,7 +659,7 @@ mod tests {
             .max_by(|a, b| a.0.total_cmp(&b.0))
             .expect("the back map answers ahead of the front one");
         assert!(gap > 0.2, "the premise: the back map's data only {gap} m farther");
-        let own = map_sd_factor(&snapshot, back, &p);
+        let own = map_sd_factor(&snapshot, back_index, &p);
         let rho = (p.x + 5.0).hypot(p.y);
         let own_calibration = snapshot.scales.calibrate(Source::Window, rho, &own_estimate);
         let expected = own_calibration.sd_factor;
