@@ -237,6 +237,8 @@ mod tests {
             other => panic!("{toml:?} gave {other:?}"),
         };
         assert_eq!(field("[gp]\nlength_scale = -1.0"), "gp.length_scale");
+        assert_eq!(field("[gp]\nview_disagreement = -0.1"), "gp.view_disagreement");
+        assert_eq!(field("[gp]\nview_disagreement = 11.0"), "gp.view_disagreement");
         assert_eq!(field("map_id = \"a/b\""), "map_id");
         // Once passed validation and panicked at start.
         assert_eq!(

@@ -10,7 +10,8 @@ use nalgebra::Vector3;
 use rangegp_proto::msg::{ElevationItem, Provenance, Ray, RayItem, Refusal, Source, VarianceItem};
 use std::sync::Arc;
 
-/// How many of the nearest window maps are asked per query point (the least uncertain wins).
+/// How many of the nearest window maps are asked per query point (the nearest that answers
+/// wins), and how many other maps an answer far from its data is checked against.
 const CANDIDATES: usize = 3;
 
 /// Maps whose sensor is within range of map point (x, y), nearest first, at most [`CANDIDATES`],
@@ -190,7 +191,8 @@ fn with_disagreement(
     estimate: HeightEstimate,
 ) -> HeightEstimate {
     let weight = snapshot.scales.view_disagreement;
-    if weight <= 0.0 || estimate.data_m <= DISAGREEMENT_FROM_M {
+    // Written so that a NaN distance or weight returns the map's own answer.
+    if !(weight > 0.0 && estimate.data_m > DISAGREEMENT_FROM_M) {
         return estimate;
     }
     let p = Vector3::new(x, y, estimate.z);

@@ -18,11 +18,6 @@ use super::query::{self, Answerer};
 use super::relief::ReliefLearner;
 use super::scales::{bin_of, class_of, SigmaScales, TailShape, BINS, CLASSES};
 use super::window::MapSnapshot;
-
-/// Default weight of the other window maps' disagreement in a window answer's variance far from
-/// its data (`gp.view_disagreement`; chosen on the full calibration matrix among 0.3 and 0.5,
-/// docs/EVALUATION.md "Calibration", step 9).
-pub const DEFAULT_VIEW_DISAGREEMENT: f64 = 0.3;
 use super::LocalRangeMap;
 use crate::gp::sphere;
 use crate::scan::ScanInput;
@@ -35,6 +30,11 @@ mod sample;
 
 use factors::table_of;
 use sample::stratified_sample;
+
+/// Default weight of the other window maps' disagreement in a window answer's variance far from
+/// its data (`gp.view_disagreement`; chosen on the full calibration matrix among 0.3 and 0.5,
+/// docs/EVALUATION.md "Calibration", step 9).
+pub const DEFAULT_VIEW_DISAGREEMENT: f64 = 0.3;
 
 /// Returns sampled per range bin from each scan.
 pub const PER_BIN_PER_SCAN: usize = 48;
