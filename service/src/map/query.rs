@@ -132,26 +132,19 @@ fn search(
             .get(i)
             .map_or(f64::INFINITY, |[sx, sy, _]| (x - sx).hypot(y - sy))
     };
-    let window = |i: usize, estimate: HeightEstimate| RawAnswer {
-        estimate,
-        by: Answerer::Window(i),
-        rho_m: rho(i),
-    };
     let mut best: Option<RawAnswer> = None;
-    let elev =
-        |i: usize, m: &Arc<LocalRangeMap>| m.elevation(x, y).map(|e| with_disagreement(snapshot, i, x, y, e));
-    for (i, m) in nearest(snapshot, x, y) {
+    for (i, _) in nearest(snapshot, x, y) {
         if let Some(first) = &best {
             let gap = rho(i) - first.rho_m;
             if !blend || gap >= BLEND_M {
                 break;
             }
-            if let Some(e) = elev(i, m) {
+            if let Some(second) = raw_elevation_of(snapshot, i, x, y) {
                 let weight = 0.5 * (1.0 - smoothstep(gap / BLEND_M));
-                return Some((*first, Some((window(i, e), weight))));
+                return Some((*first, Some((second, weight))));
             }
-        } else if let Some(e) = elev(i, m) {
-            best = Some(window(i, e));
+        } else {
+            best = raw_elevation_of(snapshot, i, x, y);
         }
     }
     if let Some(first) = best {
@@ -198,7 +191,7 @@ fn with_disagreement(
     let p = Vector3::new(x, y, estimate.z);
     let gap = nearest_where(snapshot, x, y, |j| j != i)
         .into_iter()
-        .filter_map(|(_, m)| m.gap_at(&p))
+        .filter_map(|(_, m)| m.gap(&p))
         .map(f64::abs)
         .fold(f64::INFINITY, f64::min);
     if !gap.is_finite() {
@@ -521,7 +514,7 @@ mod tests {
             let q = Vector3::new(p.x, p.y, e.z);
             let gap = nearest_where(&plain, p.x, p.y, |j| j != i)
                 .into_iter()
-                .filter_map(|(_, m)| m.gap_at(&q))
+                .filter_map(|(_, m)| m.gap(&q))
                 .map(f64::abs)
                 .fold(f64::INFINITY, f64::min);
             if e.data_m >= DISAGREEMENT_FULL_M && gap.is_finite() {

@@ -362,15 +362,11 @@ impl LocalRangeMap {
         (dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&v, dist)).then_some((v, dist))
     }
 
-    /// How far map point `p` lies behind this scan's mean surface along the sensor's ray through
-    /// it, metres (negative in front: in space the scan saw through), or `None` outside its field
-    /// of view: whether this view agrees with a surface another map put at `p`.
-    pub fn gap_at(&self, p: &Vector3<f64>) -> Option<f64> {
-        self.gap(p)
-    }
-
-    /// Signed gap `‖p − s‖ − μ(angles of p)`: negative in free space, positive behind the surface.
-    fn gap(&self, p: &Vector3<f64>) -> Option<f64> {
+    /// Signed gap `‖p − s‖ − μ(angles of p)` of map point `p`, metres: how far it lies behind
+    /// this scan's mean surface along the sensor's ray through it (negative in free space the
+    /// scan saw through), or `None` outside its field of view; also whether this view agrees with
+    /// a surface another map put at `p`.
+    pub fn gap(&self, p: &Vector3<f64>) -> Option<f64> {
         let (v, dist) = self.sensor_vector(p)?;
         let (inc, az) = sphere::angles_of(v);
         // The direction is v / ‖v‖: no sine or cosine of the angles just taken.
