@@ -409,10 +409,9 @@ fn sd_factor(snapshot: &MapSnapshot, source: Source, p: &Vector3<f64>) -> f64 {
 /// The factor from window map `i`'s own σ to its calibrated height answer's at map point `p`
 /// (its range σ there is what a ray it casts scales: its distance from its own data and the
 /// other views' disagreement with it, not the nearest map's); [`sd_factor`] where it gives none.
+/// `i` must index the snapshot's maps.
 fn map_sd_factor(snapshot: &MapSnapshot, i: usize, p: &Vector3<f64>) -> f64 {
-    let Some(map) = snapshot.maps().get(i) else {
-        return sd_factor(snapshot, Source::Window, p);
-    };
+    let map = &snapshot.maps()[i];
     match map.elevation(p.x, p.y) {
         Some(own) => {
             let s = map.sensor_position();
