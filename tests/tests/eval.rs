@@ -17,6 +17,7 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         step_m: 1.0,
         stop_scans: 0,
         scans: None,
+        ends: 1,
         mount_m: None,
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;

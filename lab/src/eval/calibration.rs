@@ -8,7 +8,8 @@
 //! ([`query::elevation`]). Ground points around the last pose are scored against the terrain's
 //! true height by range band (distance from the last sensor position) and by the source that
 //! answered (window or aggregate); points that no scan could see (occluded, or outside every
-//! field of view) form a band of their own, where a refusal is the right answer.
+//! field of view) form a band of their own, where a refusal is the right answer. With `--ends`
+//! the drive goes on and the same is done at several places along it, pooled per cell.
 
 use super::drive::{map_drive, Drive, MappedDrive};
 use super::scores::{Sample, Scores};
@@ -19,7 +20,7 @@ use nalgebra::{Isometry3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
-use rangegp_service::map::query;
+use rangegp_service::map::{query, MapSnapshot};
 use rangegp_sim::family::FAMILY_SIZE_M;
 use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
 use rayon::prelude::*;
@@ -394,19 +395,32 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
     })
 }
 
-/// One terrain and sensor: drive, fit, query, score.
+/// Scans between the places along a drive where the matrix is scored (`--ends`): 4 m at the
+/// default step, so that each place's 0–5 m disc holds mostly ground the last did not.
+pub const END_SPACING_SCANS: usize = 4;
+
+/// One terrain and sensor: drive, fit, query, score (at each of `opts.ends` places).
 fn run_one(
     terrain: &Heightmap,
     preset: &ScannerPreset,
     opts: &FamilyOptions,
 ) -> Result<BTreeMap<(&'static str, &'static str), Bin>> {
     let seed = opts.seed;
-    let MappedDrive { poses, snapshot, .. } = map_drive(
+    let scans = opts.drive_scans(20, 6);
+    let ends = opts.ends.max(1);
+    // Every place but the last, by the number of scans mapped when the robot is there.
+    let earlier: Vec<usize> = (0..ends - 1).map(|k| scans + k * END_SPACING_SCANS).collect();
+    let MappedDrive {
+        poses,
+        snapshot,
+        kept,
+        ..
+    } = map_drive(
         terrain,
         preset,
         &Drive {
             config: &opts.config,
-            scans: opts.drive_scans(20, 6),
+            scans: scans + (ends - 1) * END_SPACING_SCANS,
             step_m: opts.step_m,
             stop_scans: opts.stop_scans,
             path_seed: seed ^ 0xca1,
@@ -414,52 +428,92 @@ fn run_one(
             stamp_base: 1_000,
             evict: true,
             progress: true,
+            keep_after: &earlier,
         },
     )?;
-
-    let last = poses[poses.len() - 1].translation.vector;
-    let coverage = Coverage::of(preset);
-    let per_band = if opts.quick { 400 } else { 2500 };
+    let places = earlier
+        .iter()
+        .copied()
+        .zip(&kept)
+        .chain([(poses.len(), &snapshot)]);
+    let place = Place {
+        terrain,
+        coverage: Coverage::of(preset),
+        max_range_m: preset.max_range_m,
+        per_band: if opts.quick { 400 } else { 2500 },
+    };
     let mut rng = Pcg64::seed_from_u64(opts.seed ^ 0x7e57);
     let mut bins: BTreeMap<(&'static str, &'static str), Bin> = BTreeMap::new();
-    for &(lo, hi, band) in &BANDS {
-        let hi = hi.min(preset.max_range_m);
-        if lo >= hi {
-            continue;
-        }
-        let points: Vec<[f64; 2]> = (0..per_band)
-            .map(|_| {
-                let r = rng.random_range(lo * lo..hi * hi).sqrt();
-                let a = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-                [last.x + r * a.cos(), last.y + r * a.sin()]
-            })
-            .collect();
-        let answers: Vec<_> = points
-            .par_iter()
-            .map(|&[x, y]| {
-                let truth = terrain.height(x, y)?;
-                let seen = poses.iter().any(|p| coverage.sees(terrain, p, [x, y, truth]));
-                Some((truth, seen, query::elevation(&snapshot, x, y)))
-            })
-            .collect();
-        for (truth, seen, item) in answers.into_iter().flatten() {
-            let band = if seen { band } else { OCCLUDED };
-            let source = match item.source {
-                Source::Aggregate => "aggregate",
-                _ => "window",
-            };
-            let bin = bins.entry((band, source)).or_default();
-            match (item.z_m, item.z_var_m2) {
-                (Some(z), Some(var)) => bin.samples.push(Sample {
-                    mean: z,
-                    sd: var.sqrt().max(1e-9),
-                    truth,
-                }),
-                _ => bin.refused += 1,
+    for (mapped, snapshot) in places {
+        place.score(&poses[..mapped], snapshot, &mut rng, &mut bins);
+    }
+    Ok(bins)
+}
+
+/// How one place of a drive is scored.
+struct Place<'a> {
+    terrain: &'a Heightmap,
+    coverage: Coverage,
+    max_range_m: f64,
+    /// Points drawn per range band.
+    per_band: usize,
+}
+
+impl Place<'_> {
+    /// Scores `snapshot` (the maps after the scans from `poses`) on ground points uniform by
+    /// area in each band around the last of `poses`, adding them to `bins`; ground none of
+    /// `poses` saw goes to the occluded band.
+    fn score(
+        &self,
+        poses: &[Isometry3<f64>],
+        snapshot: &MapSnapshot,
+        rng: &mut Pcg64,
+        bins: &mut BTreeMap<(&'static str, &'static str), Bin>,
+    ) {
+        let Some(last) = poses.last().map(|p| p.translation.vector) else {
+            return;
+        };
+        let terrain = self.terrain;
+        for &(lo, hi, band) in &BANDS {
+            let hi = hi.min(self.max_range_m);
+            if lo >= hi {
+                continue;
+            }
+            let points: Vec<[f64; 2]> = (0..self.per_band)
+                .map(|_| {
+                    let r = rng.random_range(lo * lo..hi * hi).sqrt();
+                    let a = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                    [last.x + r * a.cos(), last.y + r * a.sin()]
+                })
+                .collect();
+            let answers: Vec<_> = points
+                .par_iter()
+                .map(|&[x, y]| {
+                    let truth = terrain.height(x, y)?;
+                    let seen = poses
+                        .iter()
+                        .any(|p| self.coverage.sees(terrain, p, [x, y, truth]));
+                    Some((truth, seen, query::elevation(snapshot, x, y)))
+                })
+                .collect();
+            for (truth, seen, item) in answers.into_iter().flatten() {
+                let band = if seen { band } else { OCCLUDED };
+                let source = match item.source {
+                    Source::Aggregate => "aggregate",
+                    _ => "window",
+                };
+                let bin = bins.entry((band, source)).or_default();
+                match (item.z_m, item.z_var_m2) {
+                    (Some(z), Some(var)) => bin.samples.push(Sample {
+                        mean: z,
+                        sd: var.sqrt().max(1e-9),
+                        truth,
+                    }),
+                    _ => bin.refused += 1,
+                }
             }
         }
     }
-    Ok(bins)
 }
 
 /// The angles a scanner covers in its own frame, for the visibility test.

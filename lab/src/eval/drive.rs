@@ -37,6 +37,8 @@ pub(super) struct Drive<'a> {
     pub evict: bool,
     /// Show a progress bar while simulating.
     pub progress: bool,
+    /// Numbers of scans mapped after which the snapshot is kept as well (besides the last).
+    pub keep_after: &'a [usize],
 }
 
 /// The drive's path, poses and the snapshot after its last scan.
@@ -47,6 +49,9 @@ pub(super) struct MappedDrive {
     pub poses: Vec<Isometry3<f64>>,
     /// The maps as queries see them after the last scan.
     pub snapshot: MapSnapshot,
+    /// The maps after each of [`Drive::keep_after`]'s numbers of scans, in the order the drive
+    /// reached them (those beyond the drive are left out).
+    pub kept: Vec<MapSnapshot>,
 }
 
 /// Simulates and maps `drive` on `terrain` with `preset`.
@@ -95,7 +100,8 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         Calibrator::new(config.gp.unseen_relief).with_view_disagreement(config.gp.view_disagreement)
     });
     let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
-    for (header, points) in &messages {
+    let mut kept = Vec::with_capacity(drive.keep_after.len());
+    for (mapped, (header, points)) in messages.iter().enumerate() {
         let input = validate(header, points, &limits, 0)
             .map_err(|r| anyhow::anyhow!("scan rejected: {}", r.as_str()))?;
         let map = Arc::new(LocalRangeMap::fit(&input, &params)?);
@@ -117,10 +123,41 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
             .with_aggregate(config.aggregate.enabled.then(|| Arc::new(world.clone())))
             .with_scales(scales.unwrap_or_default())
             .with_max_sigma(config.query.max_sigma_m);
+        if drive.keep_after.contains(&(mapped + 1)) {
+            kept.push(snapshot.clone());
+        }
     }
     Ok(MappedDrive {
         path,
         poses,
         snapshot,
+        kept,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_drive_keeps_the_snapshots_it_is_asked_for_and_none_past_its_end() {
+        let terrain = Heightmap::flat(80.0, 0.1, 0.0);
+        let config = Config::default();
+        let drive = Drive {
+            config: &config,
+            scans: 3,
+            step_m: 1.0,
+            stop_scans: 0,
+            path_seed: 1,
+            scan_seed: &|i| i as u64,
+            stamp_base: 1_000,
+            evict: true,
+            progress: false,
+            keep_after: &[1, 2, 9],
+        };
+        let mapped = map_drive(&terrain, &ScannerPreset::vlp16(), &drive).expect("flat ground maps");
+        let maps: Vec<usize> = mapped.kept.iter().map(|s| s.maps().len()).collect();
+        assert_eq!(maps, [1, 2]);
+        assert_eq!(mapped.snapshot.maps().len(), 3);
+    }
 }

@@ -88,6 +88,12 @@ pub struct EvalOptions {
     /// `--quick`): with `--step-m` it sets how far the robot has come when it is scored.
     #[arg(long, value_parser = clap::value_parser!(u16).range(2..=1000))]
     pub scans: Option<u16>,
+    /// Places along the calibration drive where its matrix is scored, [`calibration::END_SPACING_SCANS`]
+    /// scans apart (default 1: where the drive ends after `--scans`). With N the drive goes on
+    /// for N − 1 more places and each cell pools the points of all N: one place is one draw of
+    /// the terrain under the robot (docs/EVALUATION.md "Calibration", step 13).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=50))]
+    pub ends: u16,
     /// Height of every sensor above the ground in the calibration and layers drives, metres
     /// (default: each preset's, 0.75 m). The daemon's `gp.sensor_height_m` stays as configured:
     /// a robot whose mount the defaults do not know.
@@ -312,6 +318,8 @@ pub struct FamilyOptions {
     pub stop_scans: usize,
     /// Scans those drives take while moving (`None`: each drive's own default).
     pub scans: Option<usize>,
+    /// Places along the calibration drive where the matrix is scored (`--ends`).
+    pub ends: usize,
     /// Sensor height above the ground in those drives, metres (`None`: each preset's own).
     pub mount_m: Option<f64>,
 }
@@ -326,6 +334,7 @@ impl FamilyOptions {
             step_m: 1.0,
             stop_scans: 0,
             scans: None,
+            ends: 1,
             mount_m: None,
         }
     }
@@ -355,6 +364,7 @@ impl FamilyOptions {
             step_m: opts.step_m,
             stop_scans: usize::from(opts.stop_scans),
             scans: opts.scans.map(usize::from),
+            ends: usize::from(opts.ends),
             mount_m: opts.mount_m,
         })
     }
@@ -428,6 +438,22 @@ mod tests {
             parse(&["--scans", "1"]).is_err(),
             "a drive of one scan has no step"
         );
+    }
+
+    #[test]
+    fn ends_default_to_one_place_and_none_is_refused() {
+        let parse =
+            |args: &[&str]| EvalOptions::try_parse_from(["rangegp-eval", "calibration"].iter().chain(args));
+        let of = |args: &[&str]| FamilyOptions::of(&parse(args).expect("parsed")).expect("defaults");
+        assert_eq!(
+            (
+                of(&[]).ends,
+                of(&["--ends", "5"]).ends,
+                FamilyOptions::quick().ends
+            ),
+            (1, 5, 1)
+        );
+        assert!(parse(&["--ends", "0"]).is_err(), "no place to score");
     }
 
     #[test]

@@ -231,6 +231,7 @@ fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &FamilyOptions) -
         path,
         poses,
         snapshot,
+        ..
     } = map_drive(
         terrain,
         preset,
@@ -244,6 +245,7 @@ fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &FamilyOptions) -
             stamp_base: 2_000,
             evict: false,
             progress: false,
+            keep_after: &[],
         },
     )?;
     let coverage = Coverage::of(preset);

@@ -375,6 +375,7 @@ fn run_case(
             stamp_base: 1_000_000,
             evict: true,
             progress: false,
+            keep_after: &[],
         },
     )?;
     let model = &LayerModel::new(robot, &snapshot);
