@@ -32,6 +32,9 @@ pub struct DataIndex {
     /// Distance from each bucket's centre to the nearest bucket holding a point, metres (a
     /// Euclidean distance transform): what [`Self::distance`] interpolates.
     field: Vec<f32>,
+    /// Mean height of the points of that nearest bucket, metres: what [`Self::height_near`]
+    /// interpolates.
+    heights: Vec<f32>,
 }
 
 impl DataIndex {
@@ -83,10 +86,18 @@ impl DataIndex {
             next[b] += 1;
         }
         let seeds: Vec<bool> = starts.windows(2).map(|w| w[1] > w[0]).collect();
-        let field = distance_transform(&seeds, cols, rows)
-            .into_iter()
-            .map(|d2| (d2.sqrt() * bucket_m) as f32)
+        let mean_z: Vec<f32> = starts
+            .windows(2)
+            .map(|w| {
+                let points = &xyz[w[0] as usize..w[1] as usize];
+                let sum: f64 = points.iter().map(|p| f64::from(p[2])).sum();
+                (sum / points.len().max(1) as f64) as f32
+            })
             .collect();
+        let (field, heights) = distance_transform(&seeds, cols, rows)
+            .into_iter()
+            .map(|(d2, seed)| ((d2.sqrt() * bucket_m) as f32, mean_z[seed]))
+            .unzip();
         Self {
             origin: lo,
             bucket_m,
@@ -95,6 +106,7 @@ impl DataIndex {
             starts,
             xyz,
             field,
+            heights,
         }
     }
 
@@ -113,13 +125,32 @@ impl DataIndex {
         let (cmax, rmax) = ((self.cols - 1) as f64, (self.rows - 1) as f64);
         let (cu, cv) = (u.clamp(0.0, cmax), v.clamp(0.0, rmax));
         let outside = (u - cu).hypot(v - cv) * b;
+        (self.bilinear(&self.field, cu, cv) + outside).min(MAX_DATA_DISTANCE_M)
+    }
+
+    /// The height of the data nearest to (x, y), metres: the mean height of the nearest bucket
+    /// holding points, interpolated bilinearly between bucket centres (continuous in (x, y));
+    /// `None` for an empty index. Where an answer far from its data has drifted toward its
+    /// prior, this still shows the level of the ground the data saw there.
+    pub fn height_near(&self, x: f64, y: f64) -> Option<f64> {
+        if self.heights.is_empty() {
+            return None;
+        }
+        let b = self.bucket_m;
+        let (u, v) = ((x - self.origin[0]) / b - 0.5, (y - self.origin[1]) / b - 0.5);
+        let (cmax, rmax) = ((self.cols - 1) as f64, (self.rows - 1) as f64);
+        Some(self.bilinear(&self.heights, u.clamp(0.0, cmax), v.clamp(0.0, rmax)))
+    }
+
+    /// `grid` (one value per bucket) interpolated bilinearly at bucket coordinates (`cu`, `cv`)
+    /// inside the grid of bucket centres.
+    fn bilinear(&self, grid: &[f32], cu: f64, cv: f64) -> f64 {
         let (c0, r0) = (cu.floor() as usize, cv.floor() as usize);
         let (c1, r1) = ((c0 + 1).min(self.cols - 1), (r0 + 1).min(self.rows - 1));
         let (wu, wv) = (cu - c0 as f64, cv - r0 as f64);
-        let f = |c: usize, r: usize| f64::from(self.field[r * self.cols + c]);
-        let inside = (f(c0, r0) * (1.0 - wu) + f(c1, r0) * wu) * (1.0 - wv)
-            + (f(c0, r1) * (1.0 - wu) + f(c1, r1) * wu) * wv;
-        (inside + outside).min(MAX_DATA_DISTANCE_M)
+        let f = |c: usize, r: usize| f64::from(grid[r * self.cols + c]);
+        (f(c0, r0) * (1.0 - wu) + f(c1, r0) * wu) * (1.0 - wv)
+            + (f(c0, r1) * (1.0 - wu) + f(c1, r1) * wu) * wv
     }
 
     /// The indexed point horizontally nearest to (x, y) among those within `radius_m` (at most
@@ -182,35 +213,41 @@ impl DataIndex {
 }
 
 /// Squared distances, in buckets, from each bucket of a `cols` × `rows` grid to the nearest
-/// seed (Felzenszwalb and Huttenlocher's exact transform: one pass along rows, one along
-/// columns); `f64::INFINITY` everywhere without a seed.
-fn distance_transform(seeds: &[bool], cols: usize, rows: usize) -> Vec<f64> {
+/// seed, with that seed's index (Felzenszwalb and Huttenlocher's exact transform: one pass along
+/// rows, one along columns); `f64::INFINITY` (and index 0) everywhere without a seed.
+fn distance_transform(seeds: &[bool], cols: usize, rows: usize) -> Vec<(f64, usize)> {
     let mut d: Vec<f64> = seeds
         .iter()
         .map(|&s| if s { 0.0 } else { f64::INFINITY })
         .collect();
+    // After the pass along rows: the column of each bucket's nearest seed in its row.
+    let mut seed_col = vec![0usize; d.len()];
     let mut line = Vec::new();
     for r in 0..rows {
         line.clear();
         line.extend_from_slice(&d[r * cols..(r + 1) * cols]);
-        let out = lower_envelope(&line);
-        d[r * cols..(r + 1) * cols].copy_from_slice(&out);
+        for (c, (v, q)) in lower_envelope(&line).into_iter().enumerate() {
+            d[r * cols + c] = v;
+            seed_col[r * cols + c] = q;
+        }
     }
+    let mut out = vec![(f64::INFINITY, 0); d.len()];
     for c in 0..cols {
         line.clear();
         line.extend((0..rows).map(|r| d[r * cols + c]));
-        for (r, v) in lower_envelope(&line).into_iter().enumerate() {
-            d[r * cols + c] = v;
+        for (r, (v, q)) in lower_envelope(&line).into_iter().enumerate() {
+            out[r * cols + c] = (v, q * cols + seed_col[q * cols + c]);
         }
     }
-    d
+    out
 }
 
 /// The 1-D squared distance transform of `f`: min over q of (p − q)² + f(q), by the lower
-/// envelope of the parabolas rooted at the finite entries.
-fn lower_envelope(f: &[f64]) -> Vec<f64> {
+/// envelope of the parabolas rooted at the finite entries, with the minimising q (0 where none
+/// is finite).
+fn lower_envelope(f: &[f64]) -> Vec<(f64, usize)> {
     let roots: Vec<usize> = (0..f.len()).filter(|&q| f[q].is_finite()).collect();
-    let mut out = vec![f64::INFINITY; f.len()];
+    let mut out = vec![(f64::INFINITY, 0); f.len()];
     if roots.is_empty() {
         return out;
     }
@@ -244,7 +281,7 @@ fn lower_envelope(f: &[f64]) -> Vec<f64> {
             k += 1;
         }
         let q = hull[k];
-        *o = (p as f64 - q as f64).powi(2) + f[q];
+        *o = ((p as f64 - q as f64).powi(2) + f[q], q);
     }
     out
 }
@@ -259,6 +296,31 @@ mod tests {
             .iter()
             .map(|p| (p[0] - x).hypot(p[1] - y))
             .fold(MAX_DATA_DISTANCE_M, f64::min)
+    }
+
+    #[test]
+    fn the_height_near_a_point_is_its_nearest_datas_and_continuous() {
+        // Two patches of data 10 m apart, one 1 m above the other.
+        let mut points = Vec::new();
+        for i in 0..20 {
+            for j in 0..20 {
+                let (x, y) = (i as f64 * 0.1, j as f64 * 0.1);
+                points.push([x, y, 0.0]);
+                points.push([x + 10.0, y, 1.0]);
+            }
+        }
+        let index = DataIndex::new(&points);
+        let near = |x: f64| index.height_near(x, 1.0).expect("data");
+        assert!(near(1.0).abs() < 1e-6);
+        assert!((near(11.0) - 1.0).abs() < 1e-6);
+        // Nearer the first patch, mostly its height; across the gap no jump.
+        assert!(near(3.5) < 0.5 && near(8.5) > 0.5);
+        let mut x = 1.0;
+        while x < 11.0 {
+            assert!((near(x + 1e-6) - near(x)).abs() < 1e-3, "jump at {x}");
+            x += 0.0137;
+        }
+        assert_eq!(DataIndex::new(&[]).height_near(0.0, 0.0), None);
     }
 
     #[test]
@@ -338,7 +400,7 @@ mod tests {
     }
 
     #[test]
-    fn the_transform_is_the_brute_force_one() {
+    fn the_transform_is_the_brute_force_one_and_names_the_nearest_seed() {
         let (cols, rows) = (23, 17);
         let seeds: Vec<bool> = (0..cols * rows).map(|k| k % 37 == 5 || k == 200).collect();
         let d = distance_transform(&seeds, cols, rows);
@@ -348,12 +410,17 @@ mod tests {
                     .filter(|&k| seeds[k])
                     .map(|k| ((k % cols) as f64 - c as f64).powi(2) + ((k / cols) as f64 - r as f64).powi(2))
                     .fold(f64::INFINITY, f64::min);
-                assert_eq!(d[r * cols + c], want, "at ({c}, {r})");
+                let (d2, seed) = d[r * cols + c];
+                assert_eq!(d2, want, "at ({c}, {r})");
+                // The seed named is a seed at that distance.
+                let at =
+                    ((seed % cols) as f64 - c as f64).powi(2) + ((seed / cols) as f64 - r as f64).powi(2);
+                assert!(seeds[seed] && at == want, "seed {seed} at ({c}, {r})");
             }
         }
         assert!(distance_transform(&[false; 6], 3, 2)
             .iter()
-            .all(|v| v.is_infinite()));
+            .all(|v| v.0.is_infinite()));
     }
 
     #[test]

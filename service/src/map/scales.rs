@@ -1,6 +1,6 @@
-//! The learnt σ factors a snapshot applies to its answers, and their lookup: per (source,
-//! grazing class, range bin), each a function of the answer's own σ, interpolated so that σ never
-//! jumps. [`super::calibration`] learns them; queries and the snapshot only read them.
+//! The learnt σ factors a snapshot applies to its answers, and their lookup: per (source, level
+//! class, grazing class, range bin), each a function of the answer's own σ, interpolated so that
+//! σ never jumps. [`super::calibration`] learns them; queries and the snapshot only read them.
 
 use super::local::HeightEstimate;
 use rangegp_proto::msg::Source;
@@ -74,8 +74,21 @@ pub const CLASSES: usize = GRAZING_EDGES.len() + 1;
 /// Where each grazing class's scale holds exactly; between them it is interpolated in ln g.
 const GRAZING_CENTRES: [f64; CLASSES] = [0.354, 0.612, 1.0];
 
-/// σ scales of one source, by grazing class and range bin.
-pub type ScaleTable = [[BinScale; BINS]; CLASSES];
+/// Upper edges of the level classes of an answer's rise ([`HeightEstimate::rise`]), from ground
+/// well below the robot's level to well above (a grade of 1 %: 0.3 m at 30 m). Ground off the
+/// robot's level errs more than level ground at the same range, the more the farther off it
+/// lies (docs/EVALUATION.md "Calibration", step 15).
+pub const RISE_EDGES: [f64; 2] = [-0.01, 0.01];
+/// Number of level classes.
+pub const LEVELS: usize = RISE_EDGES.len() + 1;
+/// The level class of level ground.
+pub const LEVEL: usize = LEVELS / 2;
+/// Where each level class's scale holds exactly (level ground at 0, the others at their edges'
+/// geometric middle); between them it is interpolated linearly.
+const RISE_CENTRES: [f64; LEVELS] = [-0.02, 0.0, 0.02];
+
+/// σ scales of one source, by level class, grazing class and range bin.
+pub type ScaleTable = [[[BinScale; BINS]; CLASSES]; LEVELS];
 
 /// Upper edges of the bins of an answer's distance to the nearest datum
 /// ([`HeightEstimate::data_m`]), metres; the last bin is open-ended.
@@ -115,7 +128,7 @@ impl Relief {
             return self.var_m2[0] * (data_m / first).powi(2);
         }
         let centres: [f64; DATA_BINS] = std::array::from_fn(data_centre_m);
-        let (b0, b1, w) = bracket(data_m, &centres);
+        let (b0, b1, w) = bracket(data_m, &centres, log);
         self.var_m2[b0] * (1.0 - w) + self.var_m2[b1] * w
     }
 }
@@ -277,14 +290,14 @@ impl TailShape {
 
 impl SigmaScales {
     /// The factor on σ (not σ²) for an answer `estimate` of `source` at horizontal distance
-    /// `rho_m`. Between the centres of neighbouring range bins and grazing classes the factor is
-    /// interpolated bilinearly in (ln ρ, ln g), so that σ never jumps at an edge.
+    /// `rho_m`. Between the centres of neighbouring range bins, grazing classes and level classes
+    /// the factor is interpolated in (ln ρ, ln g, rise), so that σ never jumps at an edge.
     pub fn factor(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
         let table = match source {
             Source::Aggregate => &self.aggregate,
             _ => &self.window,
         };
-        table_factor(table, rho_m, estimate.grazing, estimate.var)
+        table_factor(table, rho_m, estimate)
     }
 
     /// `estimate` (of `source`, at horizontal distance `rho_m`) calibrated: its variance scaled
@@ -329,23 +342,32 @@ pub struct Calibrated {
     pub sd_factor: f64,
 }
 
-/// The factor of `table` for an answer of variance `var` and grazing
-/// fraction `grazing` at horizontal distance `rho_m`: bilinear in (ln ρ, ln g) between the
-/// centres of neighbouring range bins and grazing classes.
-fn table_factor(table: &ScaleTable, rho_m: f64, grazing: f64, var: f64) -> f64 {
-    let sd = var.max(0.0).sqrt();
+/// The factor of `table` for answer `estimate` at horizontal distance `rho_m`: trilinear in
+/// (ln ρ, ln g, rise) between the centres of neighbouring range bins, grazing classes and level
+/// classes.
+fn table_factor(table: &ScaleTable, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+    let sd = estimate.var.max(0.0).sqrt();
     let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
-    let (b0, b1, wb) = bracket(rho_m, &rho_centres);
-    let (c0, c1, wc) = bracket(grazing, &GRAZING_CENTRES);
-    let ln = |c: usize, b: usize| table[c][b].factor(sd).ln();
-    let lower = ln(c0, b0) * (1.0 - wb) + ln(c0, b1) * wb;
-    let upper = ln(c1, b0) * (1.0 - wb) + ln(c1, b1) * wb;
-    (lower * (1.0 - wc) + upper * wc).exp()
+    let (b0, b1, wb) = bracket(rho_m, &rho_centres, log);
+    let (c0, c1, wc) = bracket(estimate.grazing, &GRAZING_CENTRES, log);
+    let (l0, l1, wl) = bracket(estimate.rise, &RISE_CENTRES, |x| x);
+    let ln = |l: usize, c: usize, b: usize| table[l][c][b].factor(sd).ln();
+    let at_level = |l: usize| {
+        let lower = ln(l, c0, b0) * (1.0 - wb) + ln(l, c0, b1) * wb;
+        let upper = ln(l, c1, b0) * (1.0 - wb) + ln(l, c1, b1) * wb;
+        lower * (1.0 - wc) + upper * wc
+    };
+    (at_level(l0) * (1.0 - wl) + at_level(l1) * wl).exp()
 }
 
-/// The neighbouring `centres` (ascending) around `x` and the weight of the upper, linear in ln x;
-/// beyond the ends, the end alone.
-fn bracket(x: f64, centres: &[f64]) -> (usize, usize, f64) {
+/// ln x, with x floored at 1e-12.
+fn log(x: f64) -> f64 {
+    x.max(1e-12).ln()
+}
+
+/// The neighbouring `centres` (ascending) around `x` and the weight of the upper, linear in
+/// `axis(x)`; beyond the ends (or for a NaN `x`), the end alone.
+fn bracket(x: f64, centres: &[f64], axis: impl Fn(f64) -> f64) -> (usize, usize, f64) {
     let last = centres.len() - 1;
     let Some(upper) = centres.iter().position(|&c| x <= c) else {
         return (last, last, 0.0);
@@ -353,8 +375,8 @@ fn bracket(x: f64, centres: &[f64]) -> (usize, usize, f64) {
     if upper == 0 {
         return (0, 0, 0.0);
     }
-    let (lo, hi) = (centres[upper - 1].ln(), centres[upper].ln());
-    (upper - 1, upper, (x.max(1e-12).ln() - lo) / (hi - lo))
+    let (lo, hi) = (axis(centres[upper - 1]), axis(centres[upper]));
+    (upper - 1, upper, (axis(x) - lo) / (hi - lo))
 }
 
 /// A range bin's centre ([`centre_of`] the range edges).
@@ -375,6 +397,18 @@ fn centre_of(edges: &[f64], bin: usize) -> f64 {
 /// The range bin of horizontal distance `rho_m`.
 pub fn bin_of(rho_m: f64) -> usize {
     RANGE_EDGES_M.iter().take_while(|&&e| rho_m >= e).count()
+}
+
+/// Whether answers of grazing class `class` are told apart by level: only far from shadows (the
+/// last class). Near a shadow an answer is the map's smoothing of a jump, and its height says
+/// little of the ground's level.
+pub fn split_by_level(class: usize) -> bool {
+    class == CLASSES - 1
+}
+
+/// The level class of an answer's rise.
+pub fn level_of(rise: f64) -> usize {
+    RISE_EDGES.iter().take_while(|&&e| rise >= e).count()
 }
 
 /// The grazing class of an answer's grazing fraction.
@@ -416,24 +450,30 @@ mod tests {
     }
 
     #[test]
-    fn the_factor_is_continuous_across_range_bins_grazing_classes_and_sigma_groups() {
+    fn the_factor_is_continuous_across_range_bins_grazing_and_level_classes_and_sigma_groups() {
         let mut scales = SigmaScales::default();
-        for (c, row) in scales.window.iter_mut().enumerate() {
-            for (k, b) in row.iter_mut().enumerate() {
-                b.log_sd = [-6.0, -5.0, -4.0, -3.0, -2.0];
-                b.scale = std::array::from_fn(|g| 1.0 + k as f64 + 0.5 * g as f64 + 2.0 * c as f64);
+        for (l, level) in scales.window.iter_mut().enumerate() {
+            for (c, row) in level.iter_mut().enumerate() {
+                for (k, b) in row.iter_mut().enumerate() {
+                    b.log_sd = [-6.0, -5.0, -4.0, -3.0, -2.0];
+                    b.scale = std::array::from_fn(|g| {
+                        1.0 + k as f64 + 0.5 * g as f64 + 2.0 * c as f64 + 3.0 * l as f64
+                    });
+                }
             }
         }
-        let at = |rho: f64, grazing: f64, sd: f64| {
+        let at_rise = |rho: f64, grazing: f64, sd: f64, rise: f64| {
             let e = HeightEstimate {
                 z: 0.0,
                 var: sd * sd,
                 grazing,
                 point_sd: [0.0, 0.0, sd],
                 data_m: 0.0,
+                rise,
             };
             scales.factor(Source::Window, rho, &e)
         };
+        let at = |rho: f64, grazing: f64, sd: f64| at_rise(rho, grazing, sd, 0.0);
         let rhos = RANGE_EDGES_M.iter().copied().chain((0..BINS).map(bin_centre_m));
         let grazings = GRAZING_EDGES.iter().chain(GRAZING_CENTRES.iter()).copied();
         for rho in rhos {
@@ -448,11 +488,22 @@ mod tests {
             let jump = (at(7.0, g - 1e-9, 0.01) - at(7.0, g + 1e-9, 0.01)).abs();
             assert!(jump < 1e-6, "jump at grazing {g}");
         }
-        // At a cell's centres its own factor holds; far from any shadow, the last class's.
-        let (c, b) = (1, 3);
+        for rise in RISE_EDGES.iter().chain(RISE_CENTRES.iter()).copied() {
+            let jump = (at_rise(7.0, 0.8, 0.01, rise - 1e-9) - at_rise(7.0, 0.8, 0.01, rise + 1e-9)).abs();
+            assert!(jump < 1e-6, "jump at rise {rise}");
+        }
+        // At a cell's centres its own factor holds; far from any shadow, the last class's; far
+        // off level, the end level's.
+        let (l, c, b) = (LEVELS / 2, 1, 3);
         let f = at(bin_centre_m(b), GRAZING_CENTRES[c], 0.05);
-        assert!((f - scales.window[c][b].factor(0.05)).abs() < 1e-9);
+        assert!((f - scales.window[l][c][b].factor(0.05)).abs() < 1e-9);
         let f = at(bin_centre_m(b), f64::INFINITY, 0.05);
-        assert!((f - scales.window[CLASSES - 1][b].factor(0.05)).abs() < 1e-9);
+        assert!((f - scales.window[l][CLASSES - 1][b].factor(0.05)).abs() < 1e-9);
+        let f = at_rise(bin_centre_m(b), f64::INFINITY, 0.05, -0.5);
+        assert!((f - scales.window[0][CLASSES - 1][b].factor(0.05)).abs() < 1e-9);
+        assert!(
+            f < at(bin_centre_m(b), f64::INFINITY, 0.05),
+            "the levels' factors differ"
+        );
     }
 }

@@ -199,6 +199,7 @@ impl Aggregate for PoseAugmentedGp {
             grazing: f64::INFINITY,
             point_sd: [0.0, 0.0, var.sqrt()],
             data_m: 0.0,
+            rise: 0.0,
         })
     }
 

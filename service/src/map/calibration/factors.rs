@@ -1,17 +1,43 @@
-//! The σ factors of held residuals: per source, grazing class, range bin and fifth by σ.
+//! The σ factors of held residuals: per source, level class, grazing class, range bin and fifth
+//! by σ.
 
 use super::{Residual, Residuals, MIN_RESIDUALS, SCALE_BOUNDS};
-use crate::map::scales::{BinScale, ScaleTable, BINS, SIGMA_GROUPS};
+use crate::map::scales::{split_by_level, BinScale, ScaleTable, BINS, CLASSES, LEVEL, SIGMA_GROUPS};
 use std::collections::VecDeque;
 
 /// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes the scales of the
-/// nearest range bin of its grazing class that has them (the wider, between two as near); a
-/// class with none at all takes the nearest class's. So an empty cell neither pulls its
-/// neighbours' interpolation toward 1 nor answers with the map's raw σ.
+/// nearest range bin of its grazing class and level class that has them (the wider, between two
+/// as near); a class with none at all takes the nearest class's of its level, and a level with
+/// none at all the nearest level's. So an empty cell neither pulls its neighbours'
+/// interpolation toward 1 nor answers with the map's raw σ. Where the level is not told apart
+/// ([`split_by_level`]) every level holds level ground's scales.
 pub(super) fn table_of(residuals: &Residuals) -> ScaleTable {
-    let rows: Vec<Option<[BinScale; BINS]>> = residuals.iter().map(row_of).collect();
+    let levels: Vec<Option<LevelScales>> = residuals.iter().map(class_table_of).collect();
+    let width = |level: &LevelScales| level.iter().flatten().map(BinScale::width).sum::<f64>();
+    let mut table: ScaleTable =
+        std::array::from_fn(|l| nearest_filled(&levels, l, width).unwrap_or_default());
+    let level = table[LEVEL];
+    for scales in &mut table {
+        for (c, row) in scales.iter_mut().enumerate() {
+            if !split_by_level(c) {
+                *row = level[c];
+            }
+        }
+    }
+    table
+}
+
+/// Scales by grazing class and range bin.
+type LevelScales = [[BinScale; BINS]; CLASSES];
+
+/// Scales of residuals by grazing class and range bin, gaps filled from the nearest grazing
+/// class; `None` when no cell has [`MIN_RESIDUALS`].
+fn class_table_of(classes: &[[VecDeque<Residual>; BINS]; CLASSES]) -> Option<LevelScales> {
+    let rows: Vec<Option<[BinScale; BINS]>> = classes.iter().map(row_of).collect();
     let width = |row: &[BinScale; BINS]| row.iter().map(BinScale::width).sum::<f64>();
-    std::array::from_fn(|c| nearest_filled(&rows, c, width).unwrap_or_default())
+    rows.iter()
+        .any(Option::is_some)
+        .then(|| std::array::from_fn(|c| nearest_filled(&rows, c, width).unwrap_or_default()))
 }
 
 /// One grazing class's scales by range bin, gaps filled from the nearest bin; `None` when no

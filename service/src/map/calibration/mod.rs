@@ -4,11 +4,13 @@
 //! snapshot from before the scan. Each return is a fresh, independent measurement of ground the
 //! maps already claim to know, so its residual against the answer, with the return's own noise
 //! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
-//! area their return stands for and kept per (source, grazing class, range bin from the answering
-//! sensor) over the last scans; within a cell, each fifth of them by the answer's own σ gets the
-//! factor on σ whose 68 % and 95 % intervals cover that share. Nothing here knows the terrain or
-//! the sensor: it adapts to whatever the robot drives on, and follows it when the terrain changes
-//! (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
+//! area their return stands for and kept per (source, level class, grazing class, range bin from
+//! the answering sensor) over the last scans; within a cell, each fifth of them by the answer's
+//! own σ gets the factor on σ whose 68 % and 95 % intervals cover that share. The level class
+//! ([`HeightEstimate::rise`](super::local::HeightEstimate::rise)) tells ground off the robot's
+//! level from level ground, which err differently at the same range. Nothing here knows the
+//! terrain or the sensor: it adapts to whatever the robot drives on, and follows it when the
+//! terrain changes (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
 //! [`PAIR_EVERY_SCANS`] scans, pairs of returns a footprint apart also measure how the maps'
 //! errors correlate ([`super::correlation`]), and the held residuals give the errors' tail shape
 //! ([`TailShape`]): what planner layers turn height σ into slope σ and risks with.
@@ -16,7 +18,9 @@
 use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
 use super::query::{self, Answerer};
 use super::relief::ReliefLearner;
-use super::scales::{bin_of, class_of, SigmaScales, TailShape, BINS, CLASSES};
+use super::scales::{
+    bin_of, class_of, level_of, split_by_level, SigmaScales, TailShape, BINS, CLASSES, LEVEL, LEVELS,
+};
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
 use crate::gp::sphere;
@@ -61,8 +65,8 @@ struct Residual {
     relief_var: f64,
 }
 
-/// Recent residuals of one source, by grazing class and range bin.
-type Residuals = [[VecDeque<Residual>; BINS]; CLASSES];
+/// Recent residuals of one source, by level class, grazing class and range bin.
+type Residuals = [[[VecDeque<Residual>; BINS]; CLASSES]; LEVELS];
 
 /// The fitter's calibration state: recent residuals per cell and the scales they give.
 #[derive(Debug, Clone, Default)]
@@ -101,7 +105,7 @@ impl Calibrator {
     /// Residuals held, window then aggregate, by range bin (all grazing classes).
     #[cfg(test)]
     pub fn counts(&self) -> ([usize; BINS], [usize; BINS]) {
-        let count = |r: &Residuals| std::array::from_fn(|b| r.iter().map(|c| c[b].len()).sum());
+        let count = |r: &Residuals| std::array::from_fn(|b| r.iter().flatten().map(|c| c[b].len()).sum());
         (count(&self.window), count(&self.aggregate))
     }
 
@@ -148,7 +152,13 @@ impl Calibrator {
                 Answerer::Aggregate => (&mut self.aggregate, 1),
                 Answerer::Window(_) => (&mut self.window, 0),
             };
-            let q = &mut bins[class_of(a.estimate.grazing)][bin_of(a.rho_m)];
+            let class = class_of(a.estimate.grazing);
+            let level = if split_by_level(class) {
+                level_of(a.estimate.rise)
+            } else {
+                LEVEL
+            };
+            let q = &mut bins[level][class][bin_of(a.rho_m)];
             if q.len() == BIN_MEMORY {
                 q.pop_front();
             }
@@ -167,7 +177,7 @@ impl Calibrator {
         // included), and the window's scales are refitted under it.
         let relief = self.scales.relief;
         if in_heights {
-            for r in self.window.iter_mut().flatten().flatten() {
+            for r in self.window.iter_mut().flatten().flatten().flatten() {
                 r.relief_var = relief.var_at(r.data_m);
             }
         }
@@ -260,21 +270,23 @@ impl Calibrator {
             (&self.window, &self.scales.window),
             (&self.aggregate, &self.scales.aggregate),
         ] {
-            for (c, bins) in residuals.iter().enumerate() {
-                for (b, q) in bins.iter().enumerate() {
-                    for r in q {
-                        let f = table[c][b].factor(r.var.sqrt());
-                        let latent = f * f * r.var + r.relief_var;
-                        if r.noise_var > LATENT_SHARE * latent {
-                            continue;
-                        }
-                        let v = latent + r.noise_var;
-                        let w = r.weight.max(1e-9);
-                        total += w;
-                        count += 1;
-                        for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
-                            if r.r2 <= k * k * v {
-                                *share += w;
+            for (l, classes) in residuals.iter().enumerate() {
+                for (c, bins) in classes.iter().enumerate() {
+                    for (b, q) in bins.iter().enumerate() {
+                        for r in q {
+                            let f = table[l][c][b].factor(r.var.sqrt());
+                            let latent = f * f * r.var + r.relief_var;
+                            if r.noise_var > LATENT_SHARE * latent {
+                                continue;
+                            }
+                            let v = latent + r.noise_var;
+                            let w = r.weight.max(1e-9);
+                            total += w;
+                            count += 1;
+                            for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+                                if r.r2 <= k * k * v {
+                                    *share += w;
+                                }
                             }
                         }
                     }

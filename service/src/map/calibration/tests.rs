@@ -177,21 +177,56 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
         weight: 1.0,
         ..Residual::default()
     };
-    // Only range bins 1 and 4 of the last class have residuals: errors 2 mm and 20 mm.
-    residuals[CLASSES - 1][1] = (0..200)
+    // Only range bins 1 and 4 of the last class of level ground have residuals: errors 2 mm
+    // and 20 mm.
+    residuals[LEVEL][CLASSES - 1][1] = (0..200)
         .map(|i| r(0.002 * (1.0 + (i % 7) as f64 / 7.0)))
         .collect();
-    residuals[CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
+    residuals[LEVEL][CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
     let table = table_of(&residuals);
-    let f = |c: usize, b: usize| table[c][b].factor(1e-3);
+    let f = |c: usize, b: usize| table[LEVEL][c][b].factor(1e-3);
     assert_eq!(f(CLASSES - 1, 0), f(CLASSES - 1, 1), "bin 0 from bin 1");
     assert_eq!(f(CLASSES - 1, 6), f(CLASSES - 1, 4), "bin 6 from bin 4");
     // Bins 2 and 3 lie between: 2 is nearer 1, and 3 nearer 4.
     assert_eq!(f(CLASSES - 1, 2), f(CLASSES - 1, 1));
     assert_eq!(f(CLASSES - 1, 3), f(CLASSES - 1, 4));
-    // Classes with no residuals at all copy the nearest class.
-    assert_eq!(table[0], table[CLASSES - 1]);
+    // Classes with no residuals at all copy the nearest class, and levels the nearest level.
+    assert_eq!(table[LEVEL][0], table[LEVEL][CLASSES - 1]);
+    assert_eq!(table[0], table[LEVEL]);
+    assert_eq!(table[LEVELS - 1], table[LEVEL]);
     assert!(f(CLASSES - 1, 4) > 5.0 * f(CLASSES - 1, 1));
+}
+
+#[test]
+fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
+    let r = |sd: f64| Residual {
+        r2: sd * sd,
+        var: 1e-4,
+        noise_var: 0.0,
+        weight: 1.0,
+        ..Residual::default()
+    };
+    let errors =
+        |sd: f64| -> VecDeque<Residual> { (0..300).map(|i| r(sd * (0.2 + (i % 9) as f64 / 4.0))).collect() };
+    let mut residuals = Residuals::default();
+    // 20–40 m: level ground errs by about 1 cm, ground below the robot's level by 10 cm.
+    residuals[LEVEL][CLASSES - 1][4] = errors(0.01);
+    residuals[0][CLASSES - 1][4] = errors(0.1);
+    residuals[LEVEL][0][4] = errors(0.01);
+    let table = table_of(&residuals);
+    let f = |l: usize, c: usize| table[l][c][4].factor(1e-2);
+    assert!(
+        f(0, CLASSES - 1) > 5.0 * f(LEVEL, CLASSES - 1),
+        "below the robot's level: wider"
+    );
+    // A level with no residuals takes the nearest level's (level ground above it), and near a
+    // shadow the level is not told apart.
+    assert_eq!(table[LEVELS - 1][CLASSES - 1], table[LEVEL][CLASSES - 1]);
+    assert_eq!(table[0][0], table[LEVEL][0]);
+    assert!(split_by_level(CLASSES - 1) && !split_by_level(0));
+    assert_eq!(level_of(-0.05), 0);
+    assert_eq!(level_of(0.0), LEVEL);
+    assert_eq!(level_of(0.05), LEVELS - 1);
 }
 
 fn residuals(sd: f64, var: f64, n: usize) -> Vec<Residual> {

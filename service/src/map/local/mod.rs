@@ -4,7 +4,7 @@ mod surface;
 mod training;
 
 pub use training::{embedding_of, hyper_sample, HyperSample};
-use training::{index_of, prior_of, training_rays, training_returns};
+use training::{ground_of, index_of, prior_of, training_rays, training_returns};
 
 use super::data_index::DataIndex;
 use super::embedding::Embedding;
@@ -126,6 +126,12 @@ pub struct HeightEstimate {
     /// (0 for a height field's fused cells; the search's cap for a map that keeps no index): what
     /// the GP's angular σ does not see.
     pub data_m: f64,
+    /// How far the ground at the answer lies above the ground under the sensor that gave it,
+    /// over its horizontal distance from that sensor (the grade of the line between the two; 0
+    /// for a height field's): ground off the robot's level errs more than level ground at the
+    /// same range, which the σ calibration tells apart (docs/EVALUATION.md "Calibration", step
+    /// 15).
+    pub rise: f64,
 }
 
 /// A predicted hit along a ray.
@@ -184,6 +190,9 @@ pub struct LocalRangeMap {
     returns: Arc<Vec<[f32; 3]>>,
     /// Where the training returns lie on the map's ground, for [`HeightEstimate::data_m`].
     data: Arc<DataIndex>,
+    /// The ground under the robot in the sensor's frame ([`training::ground_of`]), for
+    /// [`HeightEstimate::rise`].
+    ground: Option<Vector3<f64>>,
 }
 
 /// Angle between a sensor's z axis and the map's, radians.
@@ -230,6 +239,7 @@ impl LocalRangeMap {
             length_scale: params.kernel.length_scale,
             data: Arc::new(index_of(&returns, &scan.pose)),
             returns: Arc::new(returns),
+            ground: ground_of(scan),
         })
     }
 
@@ -264,6 +274,12 @@ impl LocalRangeMap {
     /// Where this map's training returns lie in the map frame.
     pub fn data(&self) -> &DataIndex {
         &self.data
+    }
+
+    /// Height of the ground under the robot in the map frame, as the scan's nearest returns show
+    /// it (`None`: the scan had none).
+    pub fn ground_z(&self) -> Option<f64> {
+        self.ground.map(|g| (self.pose * nalgebra::Point3::from(g)).z)
     }
 
     /// Sensor position in the map frame.
@@ -426,6 +442,37 @@ mod tests {
         // Behind the sensor (the seed-000 scanner looks ±90° around its heading) and beyond 10 m.
         assert!(map.elevation(-3.0, -2.0).is_none());
         assert!(map.elevation(12.0, 8.0).is_none());
+    }
+
+    #[test]
+    fn the_ground_under_the_robot_and_the_rise_of_ground_off_its_level() {
+        // A plane falling 5 % along x, the sensor 1.1 m above it (the prior assumes 0.75 m:
+        // the ground is read from the returns, not from the config), tilted 3° about y.
+        let (size, res) = (40.0, 0.05);
+        let n = (size / res) as usize + 1;
+        let z: Vec<f64> = (0..n * n)
+            .map(|k| -0.05 * ((k % n) as f64 * res - size / 2.0))
+            .collect();
+        let terrain = Heightmap::from_grid(size, res, z);
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, 1.1),
+            UnitQuaternion::from_euler_angles(0.0, 3f64.to_radians(), 0.0),
+        );
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let ground = map.ground_z().expect("near returns");
+        assert!(ground.abs() < 0.05, "ground under the robot at {ground}");
+        // Down the slope the ground lies below the robot's level by 5 % of the distance.
+        let e = map.elevation(6.0, 0.5).expect("observed");
+        assert!((e.rise + 0.05).abs() < 0.01, "{e:?}");
+        let e = map.elevation(6.0, -0.5).expect("observed");
+        assert!((e.rise + 0.05).abs() < 0.01, "{e:?}");
+        // A corrected pose carries the ground along: 2 m up, the ground is 2 m up.
+        let moved = map.reanchored(
+            Isometry3::from_parts(Translation3::new(0.0, 0.0, 3.1), pose.rotation),
+            1,
+        );
+        let lifted = moved.ground_z().expect("near returns");
+        assert!((lifted - ground - 2.0).abs() < 1e-9);
     }
 
     #[test]

@@ -27,6 +27,10 @@ const ELEVATION_SAMPLES_MIN: usize = 4;
 /// need not be sampled finer than the rest.
 const ELEVATION_STEP_M: f64 = 0.25;
 
+/// Within this horizontal distance of the sensor an answer's rise is taken over this distance,
+/// metres ([`LocalRangeMap::rise`]).
+pub const RISE_MIN_DISTANCE_M: f64 = 1.0;
+
 /// Inclination step of the shadow test's range derivative, radians (0.1°).
 const SHADOW_PROBE_RAD: f64 = 1.745e-3;
 /// A crossing seen at a grazing angle below this fraction of flat ground's is a shadow edge.
@@ -71,13 +75,29 @@ impl LocalRangeMap {
         let var = root::root_variance(gap, root, var_r)?;
         let w = self.pose.rotation * unit(inc, az);
         let sd_r = var_r.sqrt();
+        let z = top - root.t;
         Some(HeightEstimate {
-            z: top - root.t,
+            z,
             var,
             grazing,
             point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
             data_m: self.data.distance(x, y),
+            rise: self.rise(x, y, z, rho2.sqrt()),
         })
+    }
+
+    /// [`HeightEstimate::rise`] at (x, y), `rho_m` from the sensor, of an answer of height `z`:
+    /// from the height of the data nearest (x, y) ([`DataIndex::height_near`]; `z` for a map
+    /// that keeps no index), not from `z`, which far from data drifts toward the prior's level
+    /// ground, so the answers that err most would look level. Within [`RISE_MIN_DISTANCE_M`] of
+    /// the sensor the rise is taken over that distance (a grade at the robot's feet says nothing
+    /// of its level); 0 where the scan showed no ground under the robot.
+    ///
+    /// [`DataIndex::height_near`]: crate::map::data_index::DataIndex::height_near
+    fn rise(&self, x: f64, y: f64, z: f64, rho_m: f64) -> f64 {
+        let height = self.data.height_near(x, y).unwrap_or(z);
+        self.ground_z()
+            .map_or(0.0, |g| (height - g) / rho_m.max(RISE_MIN_DISTANCE_M))
     }
 
     /// How much training data stands behind this map's answer at map point `p` (graded only

@@ -167,6 +167,7 @@ impl WorldAggregate {
                 grazing: f64::INFINITY,
                 point_sd: [0.0, 0.0, var.sqrt()],
                 data_m: 0.0,
+                rise: 0.0,
             }
         })
     }
