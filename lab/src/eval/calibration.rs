@@ -67,7 +67,7 @@ pub const QUICK_WINDOW_MAX_COV68: f64 = 0.82;
 /// 0.950 / 0.888.
 pub const QUICK_AGGREGATE_COV95: (f64, f64) = (0.86, 0.94);
 /// Pooled 95 % coverage of answers about occluded ground at least: 0.861 / 0.865 / 0.562 /
-/// 0.869 / 0.826 (0.831 before step 15).
+/// 0.869 / 0.826 (without the disagreement before step 15: 0.831).
 pub const QUICK_MIN_OCCLUDED_COV95: f64 = 0.845;
 /// Median NLPD over window cells at most: −1.79 / −1.72 / −1.44 / −1.84 / −1.95.
 pub const QUICK_MAX_MEDIAN_NLPD: f64 = -1.6;

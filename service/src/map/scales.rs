@@ -83,8 +83,8 @@ pub const RISE_EDGES: [f64; 2] = [-0.01, 0.01];
 pub const LEVELS: usize = RISE_EDGES.len() + 1;
 /// The level class of level ground.
 pub const LEVEL: usize = LEVELS / 2;
-/// Where each level class's scale holds exactly (level ground at 0, the others at their edges'
-/// geometric middle); between them it is interpolated linearly.
+/// Where each level class's scale holds exactly (level ground at 0, the others at twice their
+/// edge); between them it is interpolated linearly.
 const RISE_CENTRES: [f64; LEVELS] = [-0.02, 0.0, 0.02];
 
 /// σ scales of one source, by level class, grazing class and range bin.
