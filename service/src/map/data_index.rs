@@ -120,11 +120,7 @@ impl DataIndex {
         if self.field.is_empty() {
             return MAX_DATA_DISTANCE_M;
         }
-        let b = self.bucket_m;
-        let (u, v) = ((x - self.origin[0]) / b - 0.5, (y - self.origin[1]) / b - 0.5);
-        let (cmax, rmax) = ((self.cols - 1) as f64, (self.rows - 1) as f64);
-        let (cu, cv) = (u.clamp(0.0, cmax), v.clamp(0.0, rmax));
-        let outside = (u - cu).hypot(v - cv) * b;
+        let (cu, cv, outside) = self.centre_coordinates(x, y);
         (self.bilinear(&self.field, cu, cv) + outside).min(MAX_DATA_DISTANCE_M)
     }
 
@@ -136,10 +132,17 @@ impl DataIndex {
         if self.heights.is_empty() {
             return None;
         }
+        let (cu, cv, _) = self.centre_coordinates(x, y);
+        Some(self.bilinear(&self.heights, cu, cv))
+    }
+
+    /// (x, y) in the grid of bucket centres, clamped to it, and its distance outside it, metres.
+    fn centre_coordinates(&self, x: f64, y: f64) -> (f64, f64, f64) {
         let b = self.bucket_m;
         let (u, v) = ((x - self.origin[0]) / b - 0.5, (y - self.origin[1]) / b - 0.5);
         let (cmax, rmax) = ((self.cols - 1) as f64, (self.rows - 1) as f64);
-        Some(self.bilinear(&self.heights, u.clamp(0.0, cmax), v.clamp(0.0, rmax)))
+        let (cu, cv) = (u.clamp(0.0, cmax), v.clamp(0.0, rmax));
+        (cu, cv, (u - cu).hypot(v - cv) * b)
     }
 
     /// `grid` (one value per bucket) interpolated bilinearly at bucket coordinates (`cu`, `cv`)

@@ -11,6 +11,7 @@ pub mod fov;
 pub mod grid;
 pub mod layers;
 pub mod local;
+pub mod plane;
 pub mod prior;
 pub mod query;
 pub mod relief;

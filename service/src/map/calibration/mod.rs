@@ -270,24 +270,21 @@ impl Calibrator {
             (&self.window, &self.scales.window),
             (&self.aggregate, &self.scales.aggregate),
         ] {
-            for (l, classes) in residuals.iter().enumerate() {
-                for (c, bins) in classes.iter().enumerate() {
-                    for (b, q) in bins.iter().enumerate() {
-                        for r in q {
-                            let f = table[l][c][b].factor(r.var.sqrt());
-                            let latent = f * f * r.var + r.relief_var;
-                            if r.noise_var > LATENT_SHARE * latent {
-                                continue;
-                            }
-                            let v = latent + r.noise_var;
-                            let w = r.weight.max(1e-9);
-                            total += w;
-                            count += 1;
-                            for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
-                                if r.r2 <= k * k * v {
-                                    *share += w;
-                                }
-                            }
+            let cells = residuals.iter().flatten().flatten();
+            for (q, scale) in cells.zip(table.iter().flatten().flatten()) {
+                for r in q {
+                    let f = scale.factor(r.var.sqrt());
+                    let latent = f * f * r.var + r.relief_var;
+                    if r.noise_var > LATENT_SHARE * latent {
+                        continue;
+                    }
+                    let v = latent + r.noise_var;
+                    let w = r.weight.max(1e-9);
+                    total += w;
+                    count += 1;
+                    for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+                        if r.r2 <= k * k * v {
+                            *share += w;
                         }
                     }
                 }

@@ -170,13 +170,7 @@ fn observing_a_scan_learns_from_a_map_that_looked_from_farther_where_one_answers
 #[test]
 fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
     let mut residuals = Residuals::default();
-    let r = |sd: f64| Residual {
-        r2: sd * sd,
-        var: 1e-6,
-        noise_var: 0.0,
-        weight: 1.0,
-        ..Residual::default()
-    };
+    let r = |sd: f64| error_of(sd, 1e-6);
     // Only range bins 1 and 4 of the last class of level ground have residuals: errors 2 mm
     // and 20 mm.
     residuals[LEVEL][CLASSES - 1][1] = (0..200)
@@ -199,13 +193,7 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
 
 #[test]
 fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
-    let r = |sd: f64| Residual {
-        r2: sd * sd,
-        var: 1e-4,
-        noise_var: 0.0,
-        weight: 1.0,
-        ..Residual::default()
-    };
+    let r = |sd: f64| error_of(sd, 1e-4);
     let errors =
         |sd: f64| -> VecDeque<Residual> { (0..300).map(|i| r(sd * (0.2 + (i % 9) as f64 / 4.0))).collect() };
     let mut residuals = Residuals::default();
@@ -227,6 +215,18 @@ fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
     assert_eq!(level_of(-0.05), 0);
     assert_eq!(level_of(0.0), LEVEL);
     assert_eq!(level_of(0.05), LEVELS - 1);
+}
+
+/// A residual of `error_m` against an answer of variance `var`, from a noiseless return of unit
+/// weight.
+fn error_of(error_m: f64, var: f64) -> Residual {
+    Residual {
+        r2: error_m * error_m,
+        var,
+        noise_var: 0.0,
+        weight: 1.0,
+        ..Residual::default()
+    }
 }
 
 fn residuals(sd: f64, var: f64, n: usize) -> Vec<Residual> {

@@ -5,10 +5,11 @@ use super::{unit, MapParams, PriorKind};
 use crate::gp::sphere;
 use crate::map::data_index::DataIndex;
 use crate::map::embedding::Embedding;
+use crate::map::plane;
 use crate::map::prior::Prior;
 use crate::map::tiles::TrainingRay;
 use crate::scan::ScanInput;
-use nalgebra::{Isometry3, Matrix3, Vector3};
+use nalgebra::{Isometry3, Vector3};
 
 /// The kernel-input map of `scan`'s local map (its prior's footprints).
 pub fn embedding_of(scan: &ScanInput, params: &MapParams) -> Embedding {
@@ -38,43 +39,32 @@ fn training_stride(scan: &ScanInput, cap: usize) -> usize {
 pub const NEAR_GROUND_SHARE: usize = 10;
 
 /// The ground under the robot as the scan shows it, in the sensor's frame, with no sensor
-/// height assumed: the plane fitted (least squares, map-frame heights) to the nearest
-/// 1/[`NEAR_GROUND_SHARE`] of `scan`'s returns, taken at the sensor's horizontal position. A
-/// plane rather than their median height: a scanner that looks ahead sees its nearest ground
-/// metres in front, which on a slope lies off the robot's level. The median where the returns
-/// fix no plane (all on one line); `None` without returns.
+/// height assumed: the plane through the nearest 1/[`NEAR_GROUND_SHARE`] of `scan`'s returns
+/// (horizontal distance, map-frame heights; [`plane::Returns`]), taken at the sensor's
+/// horizontal position. A plane rather than their median height: a scanner that looks ahead
+/// sees its nearest ground metres in front, which on a slope lies off the robot's level.
+/// `None` without returns.
 pub(super) fn ground_of(scan: &ScanInput) -> Option<Vector3<f64>> {
-    let mut near: Vec<(f64, Vector3<f64>)> = scan
+    let mut near: Vec<(f64, Vector3<f64>, f64)> = scan
         .rays
         .iter()
         .map(|r| {
-            let m = scan.pose.rotation * (unit(r.inclination, r.azimuth) * r.range);
-            (m.x.hypot(m.y), m)
+            let dir = scan.pose.rotation * unit(r.inclination, r.azimuth);
+            let m = dir * r.range;
+            (m.x.hypot(m.y), m, (scan.range_sd(r.range) * dir.z).powi(2))
         })
-        .filter(|(rho, m)| rho.is_finite() && m.z.is_finite())
+        .filter(|(rho, m, _)| rho.is_finite() && m.z.is_finite())
         .collect();
     if near.is_empty() {
         return None;
     }
     let k = (near.len() / NEAR_GROUND_SHARE).max(1);
     near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
-    near.truncate(k);
-    let mut normal = Matrix3::zeros();
-    let mut rhs = Vector3::zeros();
-    for (_, m) in &near {
-        let row = Vector3::new(1.0, m.x, m.y);
-        normal += row * row.transpose();
-        rhs += row * m.z;
+    let mut returns = plane::Returns::default();
+    for (_, m, noise_var) in &near[..k] {
+        returns.add(m.x, m.y, m.z, *noise_var);
     }
-    let plane = normal
-        .cholesky()
-        .map(|c| c.solve(&rhs).x)
-        .filter(|h| k >= 3 && h.is_finite());
-    let height = plane.unwrap_or_else(|| {
-        let mid = k / 2;
-        near.select_nth_unstable_by(mid, |a, b| a.1.z.total_cmp(&b.1.z));
-        near[mid].1.z
-    });
+    let height = returns.plane()?.z;
     Some(scan.pose.rotation.inverse() * Vector3::new(0.0, 0.0, height))
 }
 

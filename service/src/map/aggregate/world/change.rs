@@ -2,8 +2,9 @@
 //! measured in each cell, and the cells its rays passed below (docs/ARCHITECTURE.md "Change").
 
 use super::{f32_cell, fused, Cell, Change, WorldAggregate};
-use crate::map::aggregate::returns::{CellReturns, Measured, Plane};
+use crate::map::aggregate::returns::Measured;
 use crate::map::local::LocalRangeMap;
+use crate::map::plane::{Plane, Returns};
 use crate::scan::ScanInput;
 use nalgebra::Vector3;
 use std::collections::{BTreeSet, HashMap};
@@ -178,7 +179,7 @@ impl WorldAggregate {
 
     /// The scan's returns within `reach_m` binned by cell, where a cell holds at least two: the
     /// height at the cell's centre of a plane through them, with its variance (their noise, or
-    /// their scatter about the plane where larger, through the fit: [`CellReturns`]). The
+    /// their scatter about the plane where larger, through the fit: [`Returns`]). The
     /// highest return, used before, read a sloping cell differently from every view, and the
     /// top of many noisy returns lies above the ground by a couple of σ.
     pub(super) fn returns_by_cell(
@@ -190,7 +191,7 @@ impl WorldAggregate {
         let pose = local.pose();
         let s = pose.translation.vector;
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
-        let mut bins: HashMap<(i32, i32), CellReturns> = HashMap::new();
+        let mut bins: HashMap<(i32, i32), Returns> = HashMap::new();
         for r in &scan.rays {
             let (si, ci) = r.inclination.sin_cos();
             let (sa, ca) = r.azimuth.sin_cos();
