@@ -56,20 +56,20 @@ pub const COV68: (f64, f64) = (0.60, 0.76);
 /// aggregate cov95, occluded cov95 and the median NLPD; the learnt noise floor,
 /// `ingest.learn_noise_floor = false`: window and aggregate cov95 and window cov68); the other
 /// views' disagreement, `gp.view_disagreement = 0`, fails occluded cov95. Figures are before
-/// step 15 / now / without the prequential calibration / without the floor / without the
-/// disagreement. Pooled 95 % coverage of window answers outside occluded ground: 0.948 / 0.949
-/// / 0.869 / 0.961 / 0.944.
+/// step 15 / now (step 16) / without the prequential calibration / without the floor / without
+/// the disagreement, the last three with step 16's code. Pooled 95 % coverage of window answers
+/// outside occluded ground: 0.948 / 0.947 / 0.869 / 0.962 / 0.944.
 pub const QUICK_WINDOW_COV95: (f64, f64) = (0.925, 0.955);
-/// Pooled 68 % coverage of the same answers at most: 0.802 / 0.803 / 0.707 / 0.839 / 0.790 (the
+/// Pooled 68 % coverage of the same answers at most: 0.802 / 0.790 / 0.707 / 0.834 / 0.779 (the
 /// floor's noise charged to the maps widens σ; heavy tails keep it above 0.68).
 pub const QUICK_WINDOW_MAX_COV68: f64 = 0.82;
 /// Pooled 95 % coverage of aggregate answers outside occluded ground: 0.888 / 0.888 / 0.828 /
 /// 0.950 / 0.888.
 pub const QUICK_AGGREGATE_COV95: (f64, f64) = (0.86, 0.94);
-/// Pooled 95 % coverage of answers about occluded ground at least: 0.861 / 0.865 / 0.562 /
-/// 0.869 / 0.826 (without the disagreement before step 15: 0.831).
+/// Pooled 95 % coverage of answers about occluded ground at least: 0.861 / 0.875 / 0.562 /
+/// 0.872 / 0.837 (without the disagreement before step 15: 0.831).
 pub const QUICK_MIN_OCCLUDED_COV95: f64 = 0.845;
-/// Median NLPD over window cells at most: −1.79 / −1.72 / −1.44 / −1.84 / −1.95.
+/// Median NLPD over window cells at most: −1.79 / −2.11 / −1.44 / −2.12 / −2.16.
 pub const QUICK_MAX_MEDIAN_NLPD: f64 = -1.6;
 
 /// The answers' pooled coverage at `level` (`cov68` or `cov95`) over `cells` with answers, and

@@ -87,6 +87,11 @@ pub const LEVEL: usize = LEVELS / 2;
 /// edge); between them it is interpolated linearly.
 const RISE_CENTRES: [f64; LEVELS] = [-0.02, 0.0, 0.02];
 
+/// The weights a window answer's squared departure from its nearest data
+/// ([`HeightEstimate::departure`]) may take in its own variance, one learnt per range bin
+/// (docs/EVALUATION.md "Calibration", step 16).
+pub const DEPARTURE_WEIGHTS: [f64; 5] = [0.0, 1.0 / 64.0, 1.0 / 16.0, 0.25, 1.0];
+
 /// σ scales of one source, by level class, grazing class and range bin.
 pub type ScaleTable = [[[BinScale; BINS]; CLASSES]; LEVELS];
 
@@ -174,6 +179,9 @@ pub struct SigmaScales {
     /// Weight of the other window maps' disagreement in a window answer's variance far from
     /// its data (`gp.view_disagreement`; 0: not counted).
     pub view_disagreement: f64,
+    /// Weight of a window answer's squared departure from its nearest data in its own
+    /// variance, by range bin (one of [`DEPARTURE_WEIGHTS`]).
+    pub departure: [f64; BINS],
     /// Aggregate answers (range from the newest sensor position; all in the last class).
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
@@ -289,19 +297,35 @@ impl TailShape {
 }
 
 impl SigmaScales {
-    /// The factor on σ (not σ²) for an answer `estimate` of `source` at horizontal distance
-    /// `rho_m`. Between the centres of neighbouring range bins, grazing classes and level classes
-    /// the factor is interpolated in (ln ρ, ln g, rise), so that σ never jumps at an edge.
+    /// The variance an answer `estimate` of `source` at horizontal distance `rho_m` owns before
+    /// scaling: the map's, plus for a window answer its squared departure from its nearest data
+    /// weighted as learnt for that range (interpolated in ln ρ between bin centres).
+    pub fn own_var(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+        let var = estimate.var.max(0.0);
+        if source == Source::Aggregate {
+            return var;
+        }
+        let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
+        let (b0, b1, w) = bracket(rho_m, &rho_centres, log);
+        let weight = self.departure[b0] * (1.0 - w) + self.departure[b1] * w;
+        var + weight * estimate.departure * estimate.departure
+    }
+
+    /// The factor on σ (not σ²) over [`Self::own_var`] for an answer `estimate` of `source` at
+    /// horizontal distance `rho_m`. Between the centres of neighbouring range bins, grazing
+    /// classes and level classes the factor is interpolated in (ln ρ, ln g, rise), so that σ
+    /// never jumps at an edge.
     pub fn factor(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
         let table = match source {
             Source::Aggregate => &self.aggregate,
             _ => &self.window,
         };
-        table_factor(table, rho_m, estimate)
+        let sd = self.own_var(source, rho_m, estimate).sqrt();
+        table_factor(table, rho_m, estimate, sd)
     }
 
-    /// `estimate` (of `source`, at horizontal distance `rho_m`) calibrated: its variance scaled
-    /// by [`Self::factor`] squared, plus for a window answer the relief unseen at its distance
+    /// `estimate` (of `source`, at horizontal distance `rho_m`) calibrated: its own variance
+    /// ([`Self::own_var`]) scaled by [`Self::factor`] squared, plus for a window answer the relief unseen at its distance
     /// from data; and the factor that takes its σ to the calibrated one, at least the scale alone
     /// and at most [`MAX_SD_FACTOR`] (or the scale, if larger), which a point's and a ray's σ,
     /// given along the sensor's ray, take so that they stay calibrated like the height's.
@@ -312,7 +336,7 @@ impl SigmaScales {
             _ => 0.0,
         };
         let raw = estimate.var.max(0.0);
-        let var_m2 = raw * factor * factor + relief;
+        let var_m2 = self.own_var(source, rho_m, estimate) * factor * factor + relief;
         let sd_factor = if raw > 0.0 {
             (var_m2 / raw).sqrt().min(MAX_SD_FACTOR).max(factor)
         } else {
@@ -342,11 +366,10 @@ pub struct Calibrated {
     pub sd_factor: f64,
 }
 
-/// The factor of `table` for answer `estimate` at horizontal distance `rho_m`: trilinear in
-/// (ln ρ, ln g, rise) between the centres of neighbouring range bins, grazing classes and level
-/// classes.
-fn table_factor(table: &ScaleTable, rho_m: f64, estimate: &HeightEstimate) -> f64 {
-    let sd = estimate.var.max(0.0).sqrt();
+/// The factor of `table` for answer `estimate` of own σ `sd` at horizontal distance `rho_m`:
+/// trilinear in (ln ρ, ln g, rise) between the centres of neighbouring range bins, grazing
+/// classes and level classes.
+fn table_factor(table: &ScaleTable, rho_m: f64, estimate: &HeightEstimate, sd: f64) -> f64 {
     let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
     let (b0, b1, wb) = bracket(rho_m, &rho_centres, log);
     let (c0, c1, wc) = bracket(estimate.grazing, &GRAZING_CENTRES, log);
@@ -470,6 +493,7 @@ mod tests {
                 point_sd: [0.0, 0.0, sd],
                 data_m: 0.0,
                 rise,
+                departure: 0.0,
             };
             scales.factor(Source::Window, rho, &e)
         };
@@ -488,6 +512,30 @@ mod tests {
             let jump = (at(7.0, g - 1e-9, 0.01) - at(7.0, g + 1e-9, 0.01)).abs();
             assert!(jump < 1e-6, "jump at grazing {g}");
         }
+        // The departure's weight, learnt per range bin, is interpolated like the factors.
+        let mut departed = scales;
+        departed.departure = std::array::from_fn(|b| DEPARTURE_WEIGHTS[b % DEPARTURE_WEIGHTS.len()]);
+        let e = HeightEstimate {
+            z: 0.0,
+            var: 1e-4,
+            grazing: 0.8,
+            point_sd: [0.0, 0.0, 0.01],
+            data_m: 0.0,
+            rise: 0.0,
+            departure: 0.2,
+        };
+        for rho in RANGE_EDGES_M.iter().copied().chain((0..BINS).map(bin_centre_m)) {
+            let var = |r: f64| departed.calibrate(Source::Window, r, &e).var_m2;
+            assert!(
+                (var(rho - 1e-9) - var(rho + 1e-9)).abs() < 1e-9,
+                "jump at ρ {rho}"
+            );
+        }
+        let own = departed.own_var(Source::Window, bin_centre_m(BINS - 1), &e);
+        assert!(
+            (own - (1e-4 + DEPARTURE_WEIGHTS[(BINS - 1) % DEPARTURE_WEIGHTS.len()] * 0.04)).abs() < 1e-12
+        );
+        assert_eq!(departed.own_var(Source::Aggregate, 7.0, &e), 1e-4);
         for rise in RISE_EDGES.iter().chain(RISE_CENTRES.iter()).copied() {
             let jump = (at_rise(7.0, 0.8, 0.01, rise - 1e-9) - at_rise(7.0, 0.8, 0.01, rise + 1e-9)).abs();
             assert!(jump < 1e-6, "jump at rise {rise}");

@@ -200,6 +200,7 @@ impl Aggregate for PoseAugmentedGp {
             point_sd: [0.0, 0.0, var.sqrt()],
             data_m: 0.0,
             rise: 0.0,
+            departure: 0.0,
         })
     }
 

@@ -2,7 +2,9 @@
 //! by σ.
 
 use super::{Residual, Residuals, MIN_RESIDUALS, SCALE_BOUNDS};
-use crate::map::scales::{split_by_level, BinScale, ScaleTable, BINS, CLASSES, LEVEL, SIGMA_GROUPS};
+use crate::map::scales::{
+    split_by_level, BinScale, ScaleTable, BINS, CLASSES, DEPARTURE_WEIGHTS, LEVEL, SIGMA_GROUPS,
+};
 use std::collections::VecDeque;
 
 /// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes the scales of the
@@ -25,6 +27,74 @@ pub(super) fn table_of(residuals: &Residuals) -> ScaleTable {
         }
     }
     table
+}
+
+/// Residuals of one range bin (all level and grazing classes) weighed for its departure weight,
+/// at most this many (an even stride through them): the choice fits scales five times over.
+pub const DEPARTURE_SAMPLE: usize = 2500;
+
+/// Each range bin's weight on an answer's squared departure from its nearest data in its own
+/// variance: of [`DEPARTURE_WEIGHTS`], the one under which the bin's held residuals (all level
+/// and grazing classes), with the scales they then get, fall within 1 σ most nearly as often
+/// as a Gaussian's do, 68 % (their 95 % is what the scales aim at); of two as near, the
+/// smaller. The departure tells large errors from small ones near the sensor, and counts for
+/// less far out, where the data thin and every answer departs from them. A bin with too few
+/// residuals takes its nearest neighbour's; with none anywhere, 0.
+pub(super) fn departure_weights_of(residuals: &Residuals) -> [f64; BINS] {
+    let learnt: Vec<Option<f64>> = (0..BINS)
+        .map(|b| {
+            let pooled: Vec<Residual> = residuals
+                .iter()
+                .flatten()
+                .flat_map(|c| c[b].iter().copied())
+                .collect();
+            let stride = pooled.len().div_ceil(DEPARTURE_SAMPLE).max(1);
+            let pooled: Vec<Residual> = pooled.into_iter().step_by(stride).collect();
+            (pooled.len() >= SIGMA_GROUPS * MIN_RESIDUALS).then(|| {
+                let miss = |weight: f64| {
+                    let own: VecDeque<Residual> = pooled.iter().map(|r| r.with_departure(weight)).collect();
+                    let scale = bin_scale_of(&own);
+                    let weight = weight_in(&pooled);
+                    let total: f64 = own.iter().map(&weight).sum();
+                    let inside: f64 = own
+                        .iter()
+                        .filter(|r| {
+                            let f = scale.factor(r.var.sqrt());
+                            r.r2 <= f * f * r.var + r.relief_var + r.noise_var
+                        })
+                        .map(&weight)
+                        .sum();
+                    (inside / total - GAUSSIAN_1SD).abs()
+                };
+                let mut best = (0.0, f64::INFINITY);
+                for weight in DEPARTURE_WEIGHTS {
+                    let m = miss(weight);
+                    if m < best.1 {
+                        best = (weight, m);
+                    }
+                }
+                best.0
+            })
+        })
+        .collect();
+    std::array::from_fn(|b| nearest_filled(&learnt, b, |w| *w).unwrap_or(0.0))
+}
+
+/// The share of a Gaussian within 1 σ of its mean.
+const GAUSSIAN_1SD: f64 = 0.6827;
+
+/// `residuals` with each range bin's `weights` times their squared departure in their own
+/// variances.
+pub(super) fn with_departure(residuals: &Residuals, weights: &[f64; BINS]) -> Residuals {
+    let mut out = residuals.clone();
+    for class in out.iter_mut().flatten() {
+        for (q, &weight) in class.iter_mut().zip(weights) {
+            for r in q {
+                *r = r.with_departure(weight);
+            }
+        }
+    }
+    out
 }
 
 /// Scales by grazing class and range bin.

@@ -8,7 +8,10 @@
 //! the answering sensor) over the last scans; within a cell, each fifth of them by the answer's
 //! own σ gets the factor on σ whose 68 % and 95 % intervals cover that share. The level class
 //! ([`HeightEstimate::rise`](super::local::HeightEstimate::rise)) tells ground off the robot's
-//! level from level ground, which err differently at the same range. Nothing here knows the
+//! level from level ground, which err differently at the same range. Before the factors, each
+//! range bin learns how much an answer's departure from its map's nearest data
+//! ([`HeightEstimate::departure`](super::local::HeightEstimate::departure)) counts in its own
+//! variance ([`factors::departure_weights_of`]). Nothing here knows the
 //! terrain or the sensor: it adapts to whatever the robot drives on, and follows it when the
 //! terrain changes (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
 //! [`PAIR_EVERY_SCANS`] scans, pairs of returns a footprint apart also measure how the maps'
@@ -19,7 +22,8 @@ use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
 use super::query::{self, Answerer};
 use super::relief::ReliefLearner;
 use super::scales::{
-    bin_of, class_of, level_of, split_by_level, SigmaScales, TailShape, BINS, CLASSES, LEVEL, LEVELS,
+    bin_of, class_of, level_of, split_by_level, ScaleTable, SigmaScales, TailShape, BINS, CLASSES, LEVEL,
+    LEVELS,
 };
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
@@ -32,7 +36,7 @@ use std::collections::{HashMap, VecDeque};
 mod factors;
 mod sample;
 
-use factors::table_of;
+use factors::{departure_weights_of, table_of, with_departure};
 use sample::stratified_sample;
 
 /// Default weight of the other window maps' disagreement in a window answer's variance far from
@@ -63,6 +67,20 @@ struct Residual {
     /// The relief variance unseen at that distance (window answers with the relief in heights;
     /// else 0), m²: added to the scaled variance, as the snapshot adds it.
     relief_var: f64,
+    /// The answer's squared departure from its map's nearest data
+    /// ([`HeightEstimate::departure`](super::local::HeightEstimate::departure)), m².
+    dep2: f64,
+}
+
+impl Residual {
+    /// The residual with `weight` times its squared departure in its answer's own variance.
+    fn with_departure(&self, weight: f64) -> Self {
+        Self {
+            var: self.var + weight * self.dep2,
+            dep2: 0.0,
+            ..*self
+        }
+    }
 }
 
 /// Recent residuals of one source, by level class, grazing class and range bin.
@@ -169,6 +187,7 @@ impl Calibrator {
                 weight,
                 data_m: a.estimate.data_m,
                 relief_var: 0.0,
+                dep2: a.estimate.departure.powi(2),
             });
             touched[which] = true;
             answered += usize::from(primary);
@@ -181,14 +200,21 @@ impl Calibrator {
                 r.relief_var = relief.var_at(r.data_m);
             }
         }
-        if touched[0] || (in_heights && relief != relief_before) {
-            self.scales.window = table_of(&self.window);
+        // Each range bin's weight on the departure is chosen first; the scales are fitted to
+        // the variances it gives.
+        let refit_window = touched[0] || (in_heights && relief != relief_before);
+        if refit_window {
+            self.scales.departure = departure_weights_of(&self.window);
+        }
+        let window = with_departure(&self.window, &self.scales.departure);
+        if refit_window {
+            self.scales.window = table_of(&window);
         }
         if touched[1] {
             self.scales.aggregate = table_of(&self.aggregate);
         }
         if touched[0] || touched[1] {
-            self.scales.tails = self.tails();
+            self.scales.tails = self.tails(&window);
         }
         if scan.sequence.is_multiple_of(PAIR_EVERY_SCANS) {
             let pairs = self.pairs(snapshot, scan, &sample);
@@ -260,41 +286,49 @@ impl Calibrator {
     }
 
     /// The shape of the calibrated errors: the shares of every held residual (both sources,
-    /// weighted by area) within ±1 and ±1.96 calibrated σ, fitted by [`TailShape::fit`];
-    /// Gaussian until [`MIN_TAIL_RESIDUALS`] are held.
-    fn tails(&self) -> TailShape {
-        let mut inside = [0.0; 2];
-        let mut total = 0.0;
-        let mut count = 0;
-        for (residuals, table) in [
-            (&self.window, &self.scales.window),
-            (&self.aggregate, &self.scales.aggregate),
-        ] {
+    /// weighted by area; `window` with the departure in its variances) within ±1 and ±1.96
+    /// calibrated σ ([`inside_shares`]), fitted by [`TailShape::fit`]; Gaussian until
+    /// [`MIN_TAIL_RESIDUALS`] count.
+    fn tails(&self, window: &Residuals) -> TailShape {
+        let scaled = |residuals: &'_ Residuals, table: &'_ ScaleTable| {
             let cells = residuals.iter().flatten().flatten();
-            for (q, scale) in cells.zip(table.iter().flatten().flatten()) {
-                for r in q {
-                    let f = scale.factor(r.var.sqrt());
-                    let latent = f * f * r.var + r.relief_var;
-                    if r.noise_var > LATENT_SHARE * latent {
-                        continue;
-                    }
-                    let v = latent + r.noise_var;
-                    let w = r.weight.max(1e-9);
-                    total += w;
-                    count += 1;
-                    for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
-                        if r.r2 <= k * k * v {
-                            *share += w;
-                        }
-                    }
-                }
+            cells
+                .zip(table.iter().flatten().flatten())
+                .flat_map(|(q, scale)| q.iter().map(move |r| (*r, scale.factor(r.var.sqrt()))))
+                .collect::<Vec<_>>()
+        };
+        let mut all = scaled(window, &self.scales.window);
+        all.extend(scaled(&self.aggregate, &self.scales.aggregate));
+        match inside_shares(&all) {
+            Some((shares, count)) if count >= MIN_TAIL_RESIDUALS => TailShape::fit(shares[0], shares[1]),
+            _ => TailShape::default(),
+        }
+    }
+}
+
+/// The weighted shares of `residuals`, each with the factor its scales put on its σ, within ±1
+/// and ±1.96 calibrated σ, and how many counted: only those whose return noise variance is at
+/// most [`LATENT_SHARE`] of the calibrated latent variance. `None` when none count.
+fn inside_shares(residuals: &[(Residual, f64)]) -> Option<([f64; 2], usize)> {
+    let mut inside = [0.0; 2];
+    let mut total = 0.0;
+    let mut count = 0;
+    for (r, f) in residuals {
+        let latent = f * f * r.var + r.relief_var;
+        if r.noise_var > LATENT_SHARE * latent {
+            continue;
+        }
+        let v = latent + r.noise_var;
+        let w = r.weight.max(1e-9);
+        total += w;
+        count += 1;
+        for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+            if r.r2 <= k * k * v {
+                *share += w;
             }
         }
-        if count < MIN_TAIL_RESIDUALS {
-            return TailShape::default();
-        }
-        TailShape::fit(inside[0] / total, inside[1] / total)
     }
+    (count > 0).then(|| ([inside[0] / total, inside[1] / total], count))
 }
 
 /// A return in map coordinates with its noise variance along z, m².

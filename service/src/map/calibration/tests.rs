@@ -217,6 +217,43 @@ fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
     assert_eq!(level_of(0.05), LEVELS - 1);
 }
 
+#[test]
+fn a_bin_whose_errors_follow_the_departure_from_the_data_weighs_it_and_one_whose_errors_do_not_does_not() {
+    // Gaussian quantiles: errors of σ 1 mm, except that where an answer departs from its data
+    // by d the error has σ d (half the answers depart 1 mm, the others 1–30 cm).
+    let n = 2000;
+    let departed = |error_sd: &dyn Fn(f64) -> f64| -> VecDeque<Residual> {
+        (0..n)
+            .map(|i| {
+                let d = if i % 2 == 0 {
+                    1e-3
+                } else {
+                    0.01 * (1 + i % 30) as f64
+                };
+                let z = distrs::Normal::ppf(((i * 7919) % n) as f64 / n as f64 + 0.5 / n as f64, 0.0, 1.0);
+                Residual {
+                    dep2: d * d,
+                    ..error_of(z * error_sd(d), 1e-6)
+                }
+            })
+            .collect()
+    };
+    let mut residuals = Residuals::default();
+    residuals[LEVEL][CLASSES - 1][2] = departed(&|d| d.max(1e-3));
+    // Range bin 5: the same departures, but every error of σ 1 mm.
+    residuals[LEVEL][CLASSES - 1][5] = departed(&|_| 1e-3);
+    let weights = departure_weights_of(&residuals);
+    assert!(weights[2] >= 0.25, "{weights:?}");
+    assert_eq!(weights[5], 0.0, "{weights:?}");
+    // Bins without residuals take their nearest neighbour's.
+    assert_eq!(weights[0], weights[2]);
+    assert_eq!(weights[6], weights[5]);
+    // And the weight enters the variances the scales are fitted to.
+    let with = with_departure(&residuals, &weights);
+    let r = with[LEVEL][CLASSES - 1][2][1];
+    assert!((r.var - (1e-6 + weights[2] * residuals[LEVEL][CLASSES - 1][2][1].dep2)).abs() < 1e-12);
+}
+
 /// A residual of `error_m` against an answer of variance `var`, from a noiseless return of unit
 /// weight.
 fn error_of(error_m: f64, var: f64) -> Residual {

@@ -132,6 +132,11 @@ pub struct HeightEstimate {
     /// same range, which the σ calibration tells apart (docs/EVALUATION.md "Calibration", step
     /// 15).
     pub rise: f64,
+    /// The answer's height less the height of its map's data nearest it, metres (0 for a
+    /// height field's): an answer that moved far from what was measured beside it may be off
+    /// by as much, which the σ calibration weighs by range (docs/EVALUATION.md "Calibration",
+    /// step 16).
+    pub departure: f64,
 }
 
 /// A predicted hit along a ray.

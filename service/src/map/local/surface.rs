@@ -72,32 +72,35 @@ impl LocalRangeMap {
         }
         // One range variance at the crossing serves the height's and the point's σ.
         let (_, var_r) = self.predict_range(inc, az);
-        let var = root::root_variance(gap, root, var_r)?;
         let w = self.pose.rotation * unit(inc, az);
         let sd_r = var_r.sqrt();
         let z = top - root.t;
+        let var = root::root_variance(gap, root, var_r)?;
+        // The height of the data nearest the answer: how far the answer departs from it, and
+        // how far it lies off the robot's level.
+        let near = self.data.height_near(x, y).unwrap_or(z);
         Some(HeightEstimate {
             z,
             var,
             grazing,
             point_sd: [sd_r * w.x.abs(), sd_r * w.y.abs(), sd_r * w.z.abs()],
             data_m: self.data.distance(x, y),
-            rise: self.rise(x, y, z, rho2.sqrt()),
+            rise: self.rise(near, rho2.sqrt()),
+            departure: z - near,
         })
     }
 
-    /// [`HeightEstimate::rise`] at (x, y), `rho_m` from the sensor, of an answer of height `z`:
-    /// from the height of the data nearest (x, y) ([`DataIndex::height_near`]; `z` for a map
-    /// that keeps no index), not from `z`, which far from data drifts toward the prior's level
-    /// ground, so the answers that err most would look level. Within [`RISE_MIN_DISTANCE_M`] of
+    /// [`HeightEstimate::rise`] of an answer `rho_m` from the sensor whose nearest data lie at
+    /// height `near` ([`DataIndex::height_near`]; the answer's own height for a map that keeps
+    /// no index): from the data rather than the answer, which far from data drifts toward the
+    /// prior's level ground, so the answers that err most would look level. Within [`RISE_MIN_DISTANCE_M`] of
     /// the sensor the rise is taken over that distance (a grade at the robot's feet says nothing
     /// of its level); 0 where the scan showed no ground under the robot.
     ///
     /// [`DataIndex::height_near`]: crate::map::data_index::DataIndex::height_near
-    fn rise(&self, x: f64, y: f64, z: f64, rho_m: f64) -> f64 {
-        let height = self.data.height_near(x, y).unwrap_or(z);
+    fn rise(&self, near: f64, rho_m: f64) -> f64 {
         self.ground_z()
-            .map_or(0.0, |g| (height - g) / rho_m.max(RISE_MIN_DISTANCE_M))
+            .map_or(0.0, |g| (near - g) / rho_m.max(RISE_MIN_DISTANCE_M))
     }
 
     /// How much training data stands behind this map's answer at map point `p` (graded only

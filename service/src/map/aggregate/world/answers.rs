@@ -168,6 +168,7 @@ impl WorldAggregate {
                 point_sd: [0.0, 0.0, var.sqrt()],
                 data_m: 0.0,
                 rise: 0.0,
+                departure: 0.0,
             }
         })
     }
