@@ -316,27 +316,32 @@ impl SigmaScales {
     /// classes and level classes the factor is interpolated in (ln ρ, ln g, rise), so that σ
     /// never jumps at an edge.
     pub fn factor(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
+        self.factor_over(source, rho_m, estimate, self.own_var(source, rho_m, estimate))
+    }
+
+    /// [`Self::factor`] for an answer whose own variance is `own_var`.
+    fn factor_over(&self, source: Source, rho_m: f64, estimate: &HeightEstimate, own_var: f64) -> f64 {
         let table = match source {
             Source::Aggregate => &self.aggregate,
             _ => &self.window,
         };
-        let sd = self.own_var(source, rho_m, estimate).sqrt();
-        table_factor(table, rho_m, estimate, sd)
+        table_factor(table, rho_m, estimate, own_var.sqrt())
     }
 
     /// `estimate` (of `source`, at horizontal distance `rho_m`) calibrated: its own variance
-    /// ([`Self::own_var`]) scaled by [`Self::factor`] squared, plus for a window answer the relief unseen at its distance
-    /// from data; and the factor that takes its σ to the calibrated one, at least the scale alone
+    /// ([`Self::own_var`]) scaled by [`Self::factor`] squared, plus for a window answer the relief
+    /// unseen at its distance from data; and the factor that takes its σ to the calibrated one, at least the scale alone
     /// and at most [`MAX_SD_FACTOR`] (or the scale, if larger), which a point's and a ray's σ,
     /// given along the sensor's ray, take so that they stay calibrated like the height's.
     pub fn calibrate(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> Calibrated {
-        let factor = self.factor(source, rho_m, estimate);
+        let own_var = self.own_var(source, rho_m, estimate);
+        let factor = self.factor_over(source, rho_m, estimate, own_var);
         let relief = match source {
             Source::Window if self.relief_in_heights => self.relief.var_at(estimate.data_m),
             _ => 0.0,
         };
         let raw = estimate.var.max(0.0);
-        let var_m2 = self.own_var(source, rho_m, estimate) * factor * factor + relief;
+        let var_m2 = own_var * factor * factor + relief;
         let sd_factor = if raw > 0.0 {
             (var_m2 / raw).sqrt().min(MAX_SD_FACTOR).max(factor)
         } else {

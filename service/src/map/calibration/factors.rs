@@ -51,18 +51,18 @@ pub(super) fn departure_weights_of(residuals: &Residuals) -> [f64; BINS] {
             let stride = pooled.len().div_ceil(DEPARTURE_SAMPLE).max(1);
             let pooled: Vec<Residual> = pooled.into_iter().step_by(stride).collect();
             (pooled.len() >= SIGMA_GROUPS * MIN_RESIDUALS).then(|| {
+                let area = weight_in(&pooled);
+                let total: f64 = pooled.iter().map(&area).sum();
                 let miss = |weight: f64| {
                     let own: VecDeque<Residual> = pooled.iter().map(|r| r.with_departure(weight)).collect();
                     let scale = bin_scale_of(&own);
-                    let weight = weight_in(&pooled);
-                    let total: f64 = own.iter().map(&weight).sum();
                     let inside: f64 = own
                         .iter()
                         .filter(|r| {
                             let f = scale.factor(r.var.sqrt());
                             r.r2 <= f * f * r.var + r.relief_var + r.noise_var
                         })
-                        .map(&weight)
+                        .map(&area)
                         .sum();
                     (inside / total - GAUSSIAN_1SD).abs()
                 };

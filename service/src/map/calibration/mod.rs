@@ -287,48 +287,43 @@ impl Calibrator {
 
     /// The shape of the calibrated errors: the shares of every held residual (both sources,
     /// weighted by area; `window` with the departure in its variances) within ±1 and ±1.96
-    /// calibrated σ ([`inside_shares`]), fitted by [`TailShape::fit`]; Gaussian until
-    /// [`MIN_TAIL_RESIDUALS`] count.
+    /// calibrated σ, fitted by [`TailShape::fit`]; Gaussian until [`MIN_TAIL_RESIDUALS`] count.
+    /// Only residuals whose return noise variance is at most [`LATENT_SHARE`] of the calibrated
+    /// latent variance count.
     fn tails(&self, window: &Residuals) -> TailShape {
-        let scaled = |residuals: &'_ Residuals, table: &'_ ScaleTable| {
+        fn scaled<'a>(
+            residuals: &'a Residuals,
+            table: &'a ScaleTable,
+        ) -> impl Iterator<Item = (&'a Residual, f64)> {
             let cells = residuals.iter().flatten().flatten();
             cells
                 .zip(table.iter().flatten().flatten())
-                .flat_map(|(q, scale)| q.iter().map(move |r| (*r, scale.factor(r.var.sqrt()))))
-                .collect::<Vec<_>>()
-        };
-        let mut all = scaled(window, &self.scales.window);
-        all.extend(scaled(&self.aggregate, &self.scales.aggregate));
-        match inside_shares(&all) {
-            Some((shares, count)) if count >= MIN_TAIL_RESIDUALS => TailShape::fit(shares[0], shares[1]),
-            _ => TailShape::default(),
+                .flat_map(|(q, scale)| q.iter().map(move |r| (r, scale.factor(r.var.sqrt()))))
         }
-    }
-}
-
-/// The weighted shares of `residuals`, each with the factor its scales put on its σ, within ±1
-/// and ±1.96 calibrated σ, and how many counted: only those whose return noise variance is at
-/// most [`LATENT_SHARE`] of the calibrated latent variance. `None` when none count.
-fn inside_shares(residuals: &[(Residual, f64)]) -> Option<([f64; 2], usize)> {
-    let mut inside = [0.0; 2];
-    let mut total = 0.0;
-    let mut count = 0;
-    for (r, f) in residuals {
-        let latent = f * f * r.var + r.relief_var;
-        if r.noise_var > LATENT_SHARE * latent {
-            continue;
-        }
-        let v = latent + r.noise_var;
-        let w = r.weight.max(1e-9);
-        total += w;
-        count += 1;
-        for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
-            if r.r2 <= k * k * v {
-                *share += w;
+        let mut inside = [0.0; 2];
+        let mut total = 0.0;
+        let mut count = 0;
+        let all = scaled(window, &self.scales.window).chain(scaled(&self.aggregate, &self.scales.aggregate));
+        for (r, f) in all {
+            let latent = f * f * r.var + r.relief_var;
+            if r.noise_var > LATENT_SHARE * latent {
+                continue;
+            }
+            let v = latent + r.noise_var;
+            let w = r.weight.max(1e-9);
+            total += w;
+            count += 1;
+            for (share, k) in inside.iter_mut().zip([1.0, 1.96]) {
+                if r.r2 <= k * k * v {
+                    *share += w;
+                }
             }
         }
+        if count < MIN_TAIL_RESIDUALS {
+            return TailShape::default();
+        }
+        TailShape::fit(inside[0] / total, inside[1] / total)
     }
-    (count > 0).then(|| ([inside[0] / total, inside[1] / total], count))
 }
 
 /// A return in map coordinates with its noise variance along z, m².
