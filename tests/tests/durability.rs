@@ -19,6 +19,7 @@ use rangegp_service::daemon::Daemon;
 use rangegp_service::ingest::validate::{validate, ValidationLimits};
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::aggregate::Aggregate;
+use rangegp_service::map::scales::SigmaScales;
 use rangegp_service::map::LocalRangeMap;
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, TempDir, WAIT};
@@ -184,6 +185,11 @@ impl Replay {
                 fitted.push((input, map));
             }
             let batch: Vec<_> = fitted.iter().map(|(s, m)| (s, m)).collect();
+            // With the window's departure weights the daemon had learnt when it fused them.
+            self.world.set_window_scales(&SigmaScales {
+                departure: group[0].departure_weights,
+                ..SigmaScales::default()
+            });
             self.world
                 .insert_all_and_evict(&batch, self.config.aggregate.radius_m, group[0].reach_m)?;
         }

@@ -4,6 +4,7 @@
 //! pose-augmented GP, the project's world aggregate, and a batch elevation GP over every
 //! training point of the trajectory.
 
+use super::drive::ScaleLearner;
 use super::local::{self, NUGGET_M2};
 use super::progress;
 use super::scores::{MeanSd, Sample, Scores};
@@ -27,6 +28,7 @@ use rangegp_sim::{plan_trajectories, Heightmap, ScannerPreset, Trajectory, Traje
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Size of the aggregate experiment.
@@ -160,9 +162,10 @@ fn run_trajectory(
             )
         })
         .collect();
+    let config = Config::default();
     let params = MapParams {
         kernel: kernels[0],
-        ..Config::default().map_params()
+        ..config.map_params()
     };
     let mut world = WorldAggregate::new(WorldParams {
         kernel_variance: kernels[2].variance,
@@ -178,8 +181,10 @@ fn run_trajectory(
     });
     let bar = progress::bar(scans.len() as u64, &format!("trajectory {}", index + 1));
     let mut insert_ms = 0.0;
+    let mut scales = ScaleLearner::new(&config);
     for scan in &scans {
-        let local = LocalRangeMap::fit(&scan.train, &params)?;
+        let local = Arc::new(LocalRangeMap::fit(&scan.train, &params)?);
+        scales.observe(&scan.train, Arc::clone(&local), &mut world);
         let t0 = Instant::now();
         world.insert(&scan.train, &local)?;
         insert_ms += t0.elapsed().as_secs_f64() * 1e3;

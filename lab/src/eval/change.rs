@@ -6,6 +6,7 @@
 //!
 //! Every scan goes through the daemon's validation, local fit and the world aggregate's insert.
 
+use super::drive::ScaleLearner;
 use super::FamilyOptions;
 use crate::scangen::to_message;
 use anyhow::Result;
@@ -22,6 +23,7 @@ use rangegp_sim::{family, level_pose, simulate_scan, Heightmap, ScannerPreset};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
 
 /// The change part of `world.json`.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -182,6 +184,7 @@ fn one_case(
     };
     let map_params = opts.config.map_params();
     let mut world = WorldAggregate::new(params);
+    let mut scales = ScaleLearner::new(&opts.config);
     let mut report = ChangeReport::default();
     let mut sequence = 0u64;
     for (k, (poses, terrain)) in passes.iter().enumerate() {
@@ -224,8 +227,10 @@ fn one_case(
             let g = ground.height(x, y).unwrap_or(f64::NEG_INFINITY);
             world.elevation(x, y).is_some_and(|e| e.z > g + CHANGED_M)
         };
-        for (input, map) in &fitted {
-            let (_, changes) = world.insert_all_within(&[(input, map)], params.max_reach_m)?;
+        for (input, map) in fitted {
+            let map = Arc::new(map);
+            scales.observe(&input, Arc::clone(&map), &mut world);
+            let (_, changes) = world.insert_all_within(&[(&input, map.as_ref())], params.max_reach_m)?;
             reported.extend(changes.iter().flatten().map(|c| c.cell));
             let mut sees_ground = false;
             for &c in &positives {

@@ -6,6 +6,7 @@
 //! aggregate's insert with its ledger, and `correct_aggregate` (what the aggregate thread runs
 //! when a correction arrives).
 
+use super::drive::ScaleLearner;
 use super::{progress, FamilyOptions};
 use crate::scangen::to_message;
 use anyhow::Result;
@@ -26,6 +27,7 @@ use rangegp_sim::{family, simulate_scan, Heightmap, OdometryDrift, Path, Scanner
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// The drift part of `world.json`.
@@ -184,8 +186,11 @@ fn map_drive(
         .collect::<Result<_>>()?;
     let mut world = WorldAggregate::new(WorldParams::default());
     let mut ledger = Ledger::new(opts.config.aggregate.ledger_mib << 20);
-    for (input, map) in &fitted {
-        let inserted = world.insert_all_and_evict(&[(input, map)], f64::INFINITY, f64::INFINITY)?;
+    let mut scales = ScaleLearner::new(&opts.config);
+    for (input, map) in fitted {
+        let map = Arc::new(map);
+        scales.observe(&input, Arc::clone(&map), &mut world);
+        let inserted = world.insert_all_and_evict(&[(&input, map.as_ref())], f64::INFINITY, f64::INFINITY)?;
         for raster in inserted.fused {
             ledger.push(raster);
         }

@@ -13,6 +13,7 @@ use rangegp_service::ingest::validate::{validate, ValidationLimits};
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::calibration::Calibrator;
 use rangegp_service::map::{LocalRangeMap, MapSnapshot, Window};
+use rangegp_service::scan::ScanInput;
 use rangegp_sim::{simulate_scan, Heightmap, Path, ScannerPreset};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -96,9 +97,7 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
     };
     let mut window = Window::new(config.window.capacity);
     let mut world = WorldAggregate::new(WorldParams::default());
-    let mut calibrator = config.gp.prequential_calibration.then(|| {
-        Calibrator::new(config.gp.unseen_relief).with_view_disagreement(config.gp.view_disagreement)
-    });
+    let mut calibrator = calibrator_for(config);
     let mut snapshot = MapSnapshot::default().with_max_sigma(config.query.max_sigma_m);
     let mut kept = Vec::with_capacity(drive.keep_after.len());
     for (mapped, (header, points)) in messages.iter().enumerate() {
@@ -110,6 +109,9 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
             c.scales()
         });
         if config.aggregate.enabled {
+            if let Some(scales) = &scales {
+                world.set_window_scales(scales);
+            }
             let radius_m = if drive.evict {
                 config.aggregate.radius_m
             } else {
@@ -133,6 +135,41 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         snapshot,
         kept,
     })
+}
+
+/// The daemon's σ calibrator as `config` sets it up (none when it turns it off).
+fn calibrator_for(config: &Config) -> Option<Calibrator> {
+    config
+        .gp
+        .prequential_calibration
+        .then(|| Calibrator::new(config.gp.unseen_relief).with_view_disagreement(config.gp.view_disagreement))
+}
+
+/// Learns the window's σ scales from a drive's scans as the daemon learns them, for drives that
+/// fold their scans into an aggregate directly: the scales weigh what the aggregate fuses.
+pub(super) struct ScaleLearner {
+    calibrator: Option<Calibrator>,
+    window: Window,
+}
+
+impl ScaleLearner {
+    /// Nothing learnt yet; nothing will be when `config` turns the prequential calibration off.
+    pub(super) fn new(config: &Config) -> Self {
+        Self {
+            calibrator: calibrator_for(config),
+            window: Window::new(config.window.capacity),
+        }
+    }
+
+    /// Learns from `map` (of `input`) against the maps before it, hands `world` the scales, and
+    /// keeps the map in the window.
+    pub(super) fn observe(&mut self, input: &ScanInput, map: Arc<LocalRangeMap>, world: &mut WorldAggregate) {
+        if let Some(c) = self.calibrator.as_mut() {
+            c.observe(&self.window.snapshot().with_scales(c.scales()), input, &map);
+            world.set_window_scales(&c.scales());
+        }
+        self.window.push(map);
+    }
 }
 
 #[cfg(test)]

@@ -13,6 +13,7 @@
 //! [`super::pages::TilePage`] payload.
 
 use super::format3::{self, CheckpointV3};
+use super::format4::{self, CheckpointV4};
 use super::Checkpoint;
 use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
 use serde::de::DeserializeOwned;
@@ -22,8 +23,8 @@ use thiserror::Error;
 /// First bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RGPCKPT\0";
 /// Layout version; bumped when [`Checkpoint`] changes (4: the aggregate keeps where its last
-/// scans stood).
-pub const FORMAT_VERSION: u32 = 4;
+/// scans stood; 5: and the departure weights each scan of its history was fused with).
+pub const FORMAT_VERSION: u32 = 5;
 const HEADER_LEN: usize = 8 + 4 + 8 + 8;
 const TRAILER_LEN: usize = 8;
 
@@ -74,13 +75,18 @@ pub fn encode(checkpoint: &Checkpoint, identity: u64) -> Result<Vec<u8>, FormatE
 }
 
 /// Decodes a checkpoint, checking magic, version, identity, length and checksum before the
-/// payload is parsed; a format-3 one is read too ([`super::format3`]).
+/// payload is parsed; format-3 and format-4 ones are read too ([`super::format3`],
+/// [`super::format4`]).
 pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
     match decode_framed(MAGIC, FORMAT_VERSION, bytes, identity) {
         Err(FormatError::Version {
             found: format3::VERSION,
             ..
         }) => decode_framed::<CheckpointV3>(MAGIC, format3::VERSION, bytes, identity).map(Checkpoint::from),
+        Err(FormatError::Version {
+            found: format4::VERSION,
+            ..
+        }) => decode_framed::<CheckpointV4>(MAGIC, format4::VERSION, bytes, identity).map(Checkpoint::from),
         decoded => decoded,
     }
 }

@@ -2,6 +2,7 @@
 //! so that a daemon updated in place keeps its map: the positions start empty, and the first
 //! scan after the restart counts as a whole view.
 
+use super::format4::ScanRefV4;
 use super::Checkpoint;
 use crate::map::aggregate::world::{Cell, ScanRef, WorldParams, WorldState};
 use serde::{Deserialize, Serialize};
@@ -32,7 +33,7 @@ pub struct WorldStateV3 {
     /// Scans folded in since the aggregate was created.
     pub inserts: u64,
     /// The newest of them, oldest first.
-    pub history: Vec<ScanRef>,
+    pub history: Vec<ScanRefV4>,
 }
 
 impl From<CheckpointV3> for Checkpoint {
@@ -45,7 +46,7 @@ impl From<CheckpointV3> for Checkpoint {
                 params: c.world.params,
                 cells: c.world.cells,
                 inserts: c.world.inserts,
-                history: c.world.history,
+                history: c.world.history.into_iter().map(ScanRef::from).collect(),
                 views: Vec::new(),
             },
         }

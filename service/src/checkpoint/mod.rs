@@ -13,6 +13,7 @@
 
 pub mod format;
 pub mod format3;
+pub mod format4;
 pub mod pages;
 pub mod store;
 pub mod writer;
@@ -103,6 +104,16 @@ impl Checkpoint {
         }
         if w.history.len() > HISTORY_LEN || w.history.len() as u64 > w.inserts {
             return Err(RestoreError::Invalid("scan history longer than its bound"));
+        }
+        let weights_ok = w
+            .history
+            .iter()
+            .flat_map(|r| r.departure_weights)
+            .all(|v| v.is_finite() && v >= 0.0);
+        if !weights_ok {
+            return Err(RestoreError::Invalid(
+                "a scan's departure weight is negative or not finite",
+            ));
         }
         if w.views.len() > VIEWS_KEPT || w.views.iter().flatten().any(|v| !v.is_finite()) {
             return Err(RestoreError::Invalid(
@@ -196,6 +207,7 @@ pub(crate) mod tests {
             stamp_ns: 1,
             insert: 0,
             reach_m: 10.0,
+            departure_weights: [0.0, 0.0, 1.0 / 64.0, 0.25, 1.0, 1.0, 0.0],
         }];
         Checkpoint {
             created_unix_ns: 42,
@@ -226,9 +238,61 @@ pub(crate) mod tests {
         assert!(world.elevation(1.0, 1.0).is_some());
     }
 
+    /// `c`'s history as formats 3 and 4 kept it, and as they are read: with weights 0.
+    fn history_v4(c: &Checkpoint) -> (Vec<format4::ScanRefV4>, Vec<ScanRef>) {
+        let old: Vec<format4::ScanRefV4> = c
+            .world
+            .history
+            .iter()
+            .map(|r| format4::ScanRefV4 {
+                publisher_id: r.publisher_id,
+                sequence: r.sequence,
+                stamp_ns: r.stamp_ns,
+                insert: r.insert,
+                reach_m: r.reach_m,
+            })
+            .collect();
+        let read = old.iter().map(|&r| ScanRef::from(r)).collect();
+        (old, read)
+    }
+
+    #[test]
+    fn a_format_4_checkpoint_is_read_with_its_scans_fused_with_weights_0() {
+        let c = sample();
+        let (history, read) = history_v4(&c);
+        assert!(c.world.history[0].departure_weights.iter().any(|&w| w > 0.0));
+        let old = format4::CheckpointV4 {
+            created_unix_ns: c.created_unix_ns,
+            kernel_variance: c.kernel_variance,
+            length_scale: c.length_scale,
+            world: format4::WorldStateV4 {
+                params: c.world.params,
+                cells: c.world.cells.clone(),
+                inserts: c.world.inserts,
+                history,
+                views: c.world.views.clone(),
+            },
+        };
+        let bytes = format::encode_framed(format::MAGIC, format4::VERSION, &old, id()).expect("encode");
+        let back = decode(&bytes, id()).expect("a format-4 checkpoint decodes");
+        assert!(read
+            .iter()
+            .all(|r| r.departure_weights == [0.0; crate::map::scales::BINS]));
+        let expected = Checkpoint {
+            world: WorldState {
+                history: read,
+                ..c.world
+            },
+            ..c
+        };
+        assert_eq!(back, expected);
+        assert!(back.restore(&WorldParams::default()).is_ok());
+    }
+
     #[test]
     fn a_format_3_checkpoint_is_read_with_no_recent_views() {
         let c = sample();
+        let (history, read) = history_v4(&c);
         let old = format3::CheckpointV3 {
             created_unix_ns: c.created_unix_ns,
             kernel_variance: c.kernel_variance,
@@ -237,7 +301,7 @@ pub(crate) mod tests {
                 params: c.world.params,
                 cells: c.world.cells.clone(),
                 inserts: c.world.inserts,
-                history: c.world.history.clone(),
+                history,
             },
         };
         let bytes = format::encode_framed(format::MAGIC, format3::VERSION, &old, id()).expect("encode");
@@ -245,6 +309,7 @@ pub(crate) mod tests {
         let without_views = Checkpoint {
             world: WorldState {
                 views: Vec::new(),
+                history: read,
                 ..c.world
             },
             ..c

@@ -126,6 +126,7 @@ pub(super) fn aggregate_loop(
         last_start = Some(started);
         let reach_m = budget.reach_m();
         let mut next = WorldAggregate::clone(&world);
+        next.set_window_scales(&state.snapshot.load().scales);
         // Maps fitted before a correction this aggregate reflects are moved by it first.
         let maps = generation.bring_up(state, batch.iter().map(|(_, map)| map));
         if let Some(store) = &kept.pages {

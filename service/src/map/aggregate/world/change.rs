@@ -135,16 +135,11 @@ impl WorldAggregate {
     pub(super) fn clear(&mut self, c: (i32, i32), local: &LocalRangeMap, this: u64) -> Option<Change> {
         let cell = self.cells.get(&c).copied()?;
         let (x_m, y_m) = self.centre(c);
-        let height = local
-            .elevation(x_m, y_m)
-            .filter(|e| e.var > 0.0 && e.var <= self.params.max_cell_sd_m.powi(2))
-            .map(|e| {
-                f32_cell(Cell {
-                    z: e.z,
-                    var: e.var,
-                    scans: 1,
-                })
-            });
+        let height = self.window_answer(local, c).map(|(z, var)| Cell {
+            z: z as f64,
+            var: var as f64,
+            scans: 1,
+        });
         // The scan's own height there must disagree too: a plane through a crater's rim, carried
         // across the cell, stands above ground the rays legitimately graze.
         let reference = self.returns.get(&c).map_or(cell, |m| m.cell);

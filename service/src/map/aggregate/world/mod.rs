@@ -19,8 +19,10 @@ use super::{Aggregate, AggregateError};
 use crate::gp::{CholeskyError, JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{HeightEstimate, LocalRangeMap};
+use crate::map::scales::{SigmaScales, BINS};
 use crate::scan::ScanInput;
 use change::Replaced;
+use rangegp_proto::msg::Source;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
@@ -44,7 +46,8 @@ pub struct WorldParams {
     pub length_scale: f64,
     /// Variance added to every cell's, m².
     pub nugget_m2: f64,
-    /// Scan predictions less certain than this (σ, metres) are not fused.
+    /// Scan predictions whose map's own σ (before their departure from its data) exceeds this
+    /// are not fused, metres.
     pub max_cell_sd_m: f64,
     /// A query farther than this from every fused cell is unobserved, metres.
     pub max_gap_m: f64,
@@ -120,6 +123,10 @@ pub struct ScanRef {
     pub insert: u64,
     /// How far from its sensor it was fused, metres.
     pub reach_m: f64,
+    /// The weights its window answers' squared departures from their data took in the variance
+    /// they were fused with, per range bin ([`SigmaScales::departure`], learnt by the window
+    /// when it was fused): with the reach, what a replay needs to fuse it again.
+    pub departure_weights: [f64; BINS],
 }
 
 /// A tile that left the area around the robot: its own cells and the points its expert was
@@ -251,6 +258,9 @@ pub struct WorldAggregate {
     // newest last: how new a scan's view is ([`view_share`]). Cleared by a correction that
     // moves cells: the first scan after one counts in full.
     views: VecDeque<[f64; 2]>,
+    // The window's σ scales as last learnt: how much a window answer's departure from its data
+    // weighs in the variance it is fused with (none until learnt). Not checkpointed: relearnt.
+    window_scales: SigmaScales,
 }
 
 impl WorldAggregate {
@@ -271,7 +281,14 @@ impl WorldAggregate {
             inserts: 0,
             history: VecDeque::new(),
             views: VecDeque::new(),
+            window_scales: SigmaScales::default(),
         }
+    }
+
+    /// Takes the window's σ scales as last learnt: from the next insert on, a window answer is
+    /// fused with the variance they give it before scaling ([`SigmaScales::own_var`]).
+    pub fn set_window_scales(&mut self, window_scales: &SigmaScales) {
+        self.window_scales = *window_scales;
     }
 
     /// Rebuilds an aggregate from a checkpointed state, refitting every tile.
@@ -394,13 +411,7 @@ impl WorldAggregate {
         for (scan, local) in batch {
             let sensor = local.sensor_position();
             let share = view_share(&self.views, sensor.x, sensor.y);
-            let cells: Vec<FusedCell> = self
-                .predicted_cells(local, reach_m)
-                .into_iter()
-                // As the ledger keeps them, so that a correction takes out exactly what went in.
-                .map(|(c, e)| (c, e.z as f32, e.var as f32))
-                .filter(|&(_, _, var)| var > 0.0)
-                .collect();
+            let cells = self.predicted_cells(local, reach_m);
             let this = self.inserts;
             let mut kept = Vec::with_capacity(cells.len());
             let mut replaced = Vec::new();
@@ -497,6 +508,7 @@ impl WorldAggregate {
                 stamp_ns: scan.stamp_ns,
                 insert,
                 reach_m,
+                departure_weights: self.window_scales.departure,
             });
         }
         self.refit(dirty)?;
@@ -522,9 +534,9 @@ impl WorldAggregate {
     }
 
     /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
-    /// sensor whose height it predicts surely enough to fuse (σ ≤ `max_cell_sd_m`), in parallel
-    /// on the current rayon pool.
-    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<((i32, i32), HeightEstimate)> {
+    /// sensor whose height it predicts surely enough to fuse, with their answers
+    /// ([`Self::window_answer`]), in parallel on the current rayon pool.
+    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<FusedCell> {
         let s = local.sensor_position();
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
         let (lo, hi) = (
@@ -534,7 +546,6 @@ impl WorldAggregate {
         let candidates: Vec<(i32, i32)> = (lo.0..=hi.0)
             .flat_map(|i| (lo.1..=hi.1).map(move |j| (i, j)))
             .collect();
-        let max_var = self.params.max_cell_sd_m.powi(2);
         candidates
             .par_iter()
             .filter_map(|&c| {
@@ -542,12 +553,27 @@ impl WorldAggregate {
                 if (x - s.x).hypot(y - s.y) >= reach {
                     return None;
                 }
-                let e = local
-                    .elevation(x, y)
-                    .filter(|e| e.var <= max_var && e.var > 0.0)?;
-                Some((c, e))
+                self.window_answer(local, c).map(|(z, var)| (c, z, var))
             })
             .collect()
+    }
+
+    /// `local`'s answer at the centre of cell `c` as the aggregate fuses it: its height and the
+    /// variance the window owns there ([`SigmaScales::own_var`]: the map's, plus its squared
+    /// departure from the map's nearest data as weighted for that range), rounded as the ledger
+    /// keeps them (f32), so that a correction takes out exactly what went in. `None` where the
+    /// map's own σ exceeds `max_cell_sd_m`.
+    fn window_answer(&self, local: &LocalRangeMap, c: (i32, i32)) -> Option<(f32, f32)> {
+        let (x, y) = self.centre(c);
+        let max_var = self.params.max_cell_sd_m.powi(2);
+        let e = local
+            .elevation(x, y)
+            .filter(|e| e.var <= max_var && e.var > 0.0)?;
+        let s = local.sensor_position();
+        let var = self
+            .window_scales
+            .own_var(Source::Window, (x - s.x).hypot(y - s.y), &e) as f32;
+        (var > 0.0 && var.is_finite()).then_some((e.z as f32, var))
     }
 
     /// The centre of cell `c`, metres.

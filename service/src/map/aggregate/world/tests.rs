@@ -423,3 +423,47 @@ fn a_correction_moves_drifted_scans_onto_the_map_the_true_poses_make() {
     }
     assert!(compared > 20);
 }
+
+#[test]
+fn a_window_answer_is_fused_with_its_departure_as_the_window_learnt_to_weigh_it() {
+    let terrain = crate::map::test_support::family_terrain("fbm-h05-16deg", 3, 60.0);
+    let ground = terrain.height(0.0, 0.0).expect("on the terrain");
+    let pose = Isometry3::from_parts(
+        Translation3::new(0.0, 0.0, ground + 0.75),
+        UnitQuaternion::identity(),
+    );
+    let scan = scan_of(&terrain, pose);
+    let local = LocalRangeMap::fit(&scan, &params()).expect("fit");
+    let fused_with = |departure: f64| {
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        agg.set_window_scales(&SigmaScales {
+            departure: [departure; crate::map::scales::BINS],
+            ..SigmaScales::default()
+        });
+        agg.insert(&scan, &local).expect("insert");
+        agg.cells().clone()
+    };
+    let (unweighed, weighed) = (fused_with(0.0), fused_with(1.0));
+    assert_eq!(unweighed.len(), weighed.len());
+    let mut wider = 0;
+    for (c, cell) in &weighed {
+        let (x, y) = ((c.0 as f64 + 0.5) * 0.25, (c.1 as f64 + 0.5) * 0.25);
+        let e = local.elevation(x, y).expect("a fused cell is predicted");
+        let own = unweighed[c];
+        // One scan: each cell holds its answer, with the variance it owns.
+        assert!((own.var - e.var).abs() <= 1e-6 * e.var, "{c:?}");
+        let expected = e.var + e.departure * e.departure;
+        assert!(
+            (cell.var - expected).abs() <= 1e-6 * expected,
+            "{c:?}: {} vs {expected}",
+            cell.var
+        );
+        wider += (cell.var > 1.5 * own.var) as usize;
+    }
+    // Between rings and over the relief's edges, answers depart from their data.
+    assert!(
+        wider > weighed.len() / 20,
+        "{wider} of {} cells wider",
+        weighed.len()
+    );
+}
