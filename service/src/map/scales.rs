@@ -301,14 +301,10 @@ impl SigmaScales {
     /// scaling: the map's, plus for a window answer its squared departure from its nearest data
     /// weighted as learnt for that range (interpolated in ln ρ between bin centres).
     pub fn own_var(&self, source: Source, rho_m: f64, estimate: &HeightEstimate) -> f64 {
-        let var = estimate.var.max(0.0);
-        if source == Source::Aggregate {
-            return var;
+        match source {
+            Source::Aggregate => estimate.var.max(0.0),
+            _ => departed_var(&self.departure, rho_m, estimate),
         }
-        let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
-        let (b0, b1, w) = bracket(rho_m, &rho_centres, log);
-        let weight = self.departure[b0] * (1.0 - w) + self.departure[b1] * w;
-        var + weight * estimate.departure * estimate.departure
     }
 
     /// The factor on σ (not σ²) over [`Self::own_var`] for an answer `estimate` of `source` at
@@ -405,6 +401,17 @@ fn bracket(x: f64, centres: &[f64], axis: impl Fn(f64) -> f64) -> (usize, usize,
     }
     let (lo, hi) = (axis(centres[upper - 1]), axis(centres[upper]));
     (upper - 1, upper, (axis(x) - lo) / (hi - lo))
+}
+
+/// A window answer's variance before scaling ([`SigmaScales::own_var`]): the map's, plus its
+/// squared departure from its nearest data times `departure`'s weight for horizontal distance
+/// `rho_m` (interpolated in ln ρ between bin centres). What the aggregate fuses a window answer
+/// with, given the weights alone.
+pub fn departed_var(departure: &[f64; BINS], rho_m: f64, estimate: &HeightEstimate) -> f64 {
+    let rho_centres: [f64; BINS] = std::array::from_fn(bin_centre_m);
+    let (b0, b1, w) = bracket(rho_m, &rho_centres, log);
+    let weight = departure[b0] * (1.0 - w) + departure[b1] * w;
+    estimate.var.max(0.0) + weight * estimate.departure * estimate.departure
 }
 
 /// A range bin's centre ([`centre_of`] the range edges).

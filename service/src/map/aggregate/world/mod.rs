@@ -19,10 +19,9 @@ use super::{Aggregate, AggregateError};
 use crate::gp::{CholeskyError, JitterPolicy, Kernel};
 use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{HeightEstimate, LocalRangeMap};
-use crate::map::scales::{SigmaScales, BINS};
+use crate::map::scales::{departed_var, SigmaScales, BINS};
 use crate::scan::ScanInput;
 use change::Replaced;
-use rangegp_proto::msg::Source;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
@@ -258,9 +257,10 @@ pub struct WorldAggregate {
     // newest last: how new a scan's view is ([`view_share`]). Cleared by a correction that
     // moves cells: the first scan after one counts in full.
     views: VecDeque<[f64; 2]>,
-    // The window's σ scales as last learnt: how much a window answer's departure from its data
-    // weighs in the variance it is fused with (none until learnt). Not checkpointed: relearnt.
-    window_scales: SigmaScales,
+    // The window's departure weights as last learnt: how much a window answer's departure from
+    // its data weighs, per range bin, in the variance it is fused with (none until learnt). Not
+    // checkpointed: relearnt.
+    departure_weights: [f64; BINS],
 }
 
 impl WorldAggregate {
@@ -281,14 +281,15 @@ impl WorldAggregate {
             inserts: 0,
             history: VecDeque::new(),
             views: VecDeque::new(),
-            window_scales: SigmaScales::default(),
+            departure_weights: [0.0; BINS],
         }
     }
 
-    /// Takes the window's σ scales as last learnt: from the next insert on, a window answer is
-    /// fused with the variance they give it before scaling ([`SigmaScales::own_var`]).
+    /// Takes the departure weights of the window's σ scales as last learnt: from the next insert
+    /// on, a window answer is fused with the variance they give it before scaling
+    /// ([`SigmaScales::own_var`]).
     pub fn set_window_scales(&mut self, window_scales: &SigmaScales) {
-        self.window_scales = *window_scales;
+        self.departure_weights = window_scales.departure;
     }
 
     /// Rebuilds an aggregate from a checkpointed state, refitting every tile.
@@ -508,7 +509,7 @@ impl WorldAggregate {
                 stamp_ns: scan.stamp_ns,
                 insert,
                 reach_m,
-                departure_weights: self.window_scales.departure,
+                departure_weights: self.departure_weights,
             });
         }
         self.refit(dirty)?;
@@ -559,7 +560,7 @@ impl WorldAggregate {
     }
 
     /// `local`'s answer at the centre of cell `c` as the aggregate fuses it: its height and the
-    /// variance the window owns there ([`SigmaScales::own_var`]: the map's, plus its squared
+    /// variance the window owns there ([`departed_var`]: the map's, plus its squared
     /// departure from the map's nearest data as weighted for that range), rounded as the ledger
     /// keeps them (f32), so that a correction takes out exactly what went in. `None` where the
     /// map's own σ exceeds `max_cell_sd_m`.
@@ -570,9 +571,7 @@ impl WorldAggregate {
             .elevation(x, y)
             .filter(|e| e.var <= max_var && e.var > 0.0)?;
         let s = local.sensor_position();
-        let var = self
-            .window_scales
-            .own_var(Source::Window, (x - s.x).hypot(y - s.y), &e) as f32;
+        let var = departed_var(&self.departure_weights, (x - s.x).hypot(y - s.y), &e) as f32;
         (var > 0.0 && var.is_finite()).then_some((e.z as f32, var))
     }
 
