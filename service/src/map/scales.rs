@@ -43,9 +43,10 @@ impl BinScale {
         self.factor(1e-3)
     }
 
-    /// The factor on an answer of standard deviation `sd`. Below the surest group's median the
-    /// calibrated σ stays at that group's (the map is never trusted to be surer than the surest
-    /// answers the scans tested); above the widest group's, that group's factor holds.
+    /// The factor on an answer of standard deviation `sd`, interpolated in ln σ between the
+    /// groups' medians; below the surest group's median that group's factor holds, above the
+    /// widest group's that group's (a floor on σ itself was measured and not kept:
+    /// docs/EVALUATION.md "Calibration").
     pub fn factor(&self, sd: f64) -> f64 {
         let x = sd.max(1e-12).ln();
         let (l, s) = (&self.log_sd, &self.scale);
