@@ -61,8 +61,10 @@ pub struct RawAnswer {
     pub estimate: HeightEstimate,
     /// Who answered.
     pub by: Answerer,
-    /// Horizontal distance from the answering map's sensor (the aggregate: from the newest
-    /// sensor position; infinite without one), metres.
+    /// Horizontal distance from the answering map's sensor, metres. The aggregate's: from the
+    /// sensors that fused the cells there, as fused with their heights
+    /// ([`crate::map::aggregate::world::WorldAggregate::seen_from_m`]; from the newest sensor where a cell keeps none, and
+    /// infinite without one).
     pub rho_m: f64,
 }
 
@@ -150,14 +152,21 @@ fn search(
     if let Some(first) = best {
         return Some((first, None));
     }
+    raw_aggregate_elevation(snapshot, x, y).map(|answer| (answer, None))
+}
+
+/// The aggregate's own answer at (x, y), before σ scales, whether or not a window map answers
+/// there (the calibrator tests the aggregate on every return).
+pub fn raw_aggregate_elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> Option<RawAnswer> {
     let agg = snapshot.aggregate.as_ref()?;
-    agg.elevation(x, y).map(|estimate| {
-        let answer = RawAnswer {
-            estimate,
-            by: Answerer::Aggregate,
-            rho_m: rho(0),
-        };
-        (answer, None)
+    let newest = snapshot
+        .reach()
+        .first()
+        .map_or(f64::INFINITY, |[sx, sy, _]| (x - sx).hypot(y - sy));
+    agg.elevation(x, y).map(|estimate| RawAnswer {
+        estimate,
+        by: Answerer::Aggregate,
+        rho_m: agg.seen_from_m(x, y, newest),
     })
 }
 

@@ -5,7 +5,9 @@
 //! maps already claim to know, so its residual against the answer, with the return's own noise
 //! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
 //! area their return stands for and kept per (source, level class, grazing class, range bin from
-//! the answering sensor) over the last scans; within a cell, each fifth of them by the answer's
+//! the answering sensor; for the aggregate, from the sensors that fused the cells there) over
+//! the last scans. The aggregate is also tested, at half weight, on every return a window map
+//! answers; within a cell, each fifth of them by the answer's
 //! own σ gets the factor on σ whose 68 % and 95 % intervals cover that share. The level class
 //! ([`HeightEstimate::rise`](super::local::HeightEstimate::rise)) tells ground off the robot's
 //! level from level ground, which err differently at the same range. Before the factors, each
@@ -149,6 +151,15 @@ impl Calibrator {
             |&(p, noise_var, weight)| {
                 let a = primary_answer(snapshot, &sensor, p.x, p.y)?;
                 let mut all = vec![(p, noise_var, weight, a, true)];
+                // The aggregate is tested wherever it knows the ground, not only where no
+                // window map answers: its factors are keyed on where the fusing scans stood,
+                // which a return the window answers shares with ground only the aggregate
+                // answers (step 22).
+                if a.by != Answerer::Aggregate {
+                    if let Some(b) = query::raw_aggregate_elevation(snapshot, p.x, p.y) {
+                        all.push((p, noise_var, 0.5 * weight, b, false));
+                    }
+                }
                 for &i in &farther {
                     if a.by != Answerer::Window(i) {
                         if let Some(b) = query::raw_elevation_of(snapshot, i, p.x, p.y) {

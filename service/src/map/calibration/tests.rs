@@ -1,6 +1,8 @@
 use super::factors::scale_of;
 use super::sample::coprime_stride;
 use super::*;
+use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::aggregate::Aggregate;
 use crate::map::test_support::{family_terrain, params, scan_of};
 use crate::map::Window;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -355,4 +357,31 @@ fn the_stride_visits_every_index() {
         }
         assert!(seen.iter().all(|&v| v), "n {n}");
     }
+}
+
+#[test]
+fn the_aggregate_is_tested_where_a_window_map_answers_too() {
+    let first = scan_over_flat(-1.0, 1);
+    let map = Arc::new(LocalRangeMap::fit(&first, &params()).expect("fit"));
+    let mut aggregate = WorldAggregate::new(WorldParams::default());
+    aggregate.insert(&first, &map).expect("insert");
+    let mut window = Window::new(16);
+    window.push(map);
+    let scan = scan_over_flat(0.0, 2);
+    let next = LocalRangeMap::fit(&scan, &params()).expect("fit");
+    let tested = |snapshot: &MapSnapshot| {
+        let mut calibrator = Calibrator::new(false);
+        calibrator.observe(snapshot, &scan, &next);
+        let (window, aggregate) = calibrator.counts();
+        (window.iter().sum::<usize>(), aggregate.iter().sum::<usize>())
+    };
+    let mut snapshot = window.snapshot();
+    assert_eq!(tested(&snapshot), (tested(&snapshot).0, 0));
+    snapshot.aggregate = Some(Arc::new(aggregate));
+    let (by_window, by_aggregate) = tested(&snapshot);
+    assert!(by_window >= MIN_RESIDUALS, "{by_window} window residuals");
+    assert!(
+        by_aggregate >= by_window / 2,
+        "{by_aggregate} aggregate residuals against {by_window} of the window"
+    );
 }

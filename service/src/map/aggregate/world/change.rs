@@ -62,6 +62,7 @@ impl WorldAggregate {
         // scan alone: the challengers may have been sent from other, differently wrong poses).
         let challenger = f32_cell(seen);
         self.cells.insert(c, challenger);
+        self.seen_from.remove(&c);
         self.returns.insert(
             c,
             Measured {
@@ -148,6 +149,7 @@ impl WorldAggregate {
         }
         self.challengers.remove(&c);
         self.returns.remove(&c);
+        self.seen_from.remove(&c);
         self.replaced_at.insert(c, this);
         let new = match height {
             Some(h) => {

@@ -11,6 +11,7 @@
 mod answers;
 mod change;
 mod pages;
+mod seen_from;
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
@@ -261,6 +262,11 @@ pub struct WorldAggregate {
     // its data weighs, per range bin, in the variance it is fused with (none until learnt). Not
     // checkpointed: relearnt.
     departure_weights: [f64; BINS],
+    // Each fused cell's sensor distance, fused by inverse variance as its height (`seen_from`):
+    // what the aggregate's σ factors are keyed on. Not checkpointed: a cell restored, paged in,
+    // corrected or replaced has none until a scan fuses it again (answers there fall back to
+    // the distance from the newest sensor).
+    seen_from: HashMap<(i32, i32), f32>,
 }
 
 impl WorldAggregate {
@@ -282,6 +288,7 @@ impl WorldAggregate {
             history: VecDeque::new(),
             views: VecDeque::new(),
             departure_weights: [0.0; BINS],
+            seen_from: HashMap::new(),
         }
     }
 
@@ -477,9 +484,12 @@ impl WorldAggregate {
                     var: var as f64,
                     scans: 1,
                 };
+                let before_var = self.cells.get(&c).map(|cell| cell.var);
                 if !self.fuse(c, seen) {
                     continue;
                 }
+                let (x, y) = self.centre(c);
+                self.fold_seen_from(c, before_var, seen.var, (x - sensor.x).hypot(y - sensor.y));
                 kept.push((c, z, var));
                 dirty.extend(self.tiles_covering(c));
             }

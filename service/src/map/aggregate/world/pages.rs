@@ -59,6 +59,8 @@ impl WorldAggregate {
             .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         self.challengers
             .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
+        self.seen_from
+            .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         applied.tiles_refitted = dirty.len();
         self.refit(dirty)?;
         Ok(applied)
@@ -119,6 +121,7 @@ impl WorldAggregate {
         self.challengers.retain(|c, _| cells.contains_key(c));
         self.replaced_at.retain(|c, _| cells.contains_key(c));
         self.returns.retain(|c, _| cells.contains_key(c));
+        self.seen_from.retain(|c, _| cells.contains_key(c));
         let mut pages: Vec<TilePage> = pages.into_values().collect();
         for page in &mut pages {
             page.cells.sort_by_key(|&(k, _)| k);
@@ -194,6 +197,7 @@ impl WorldAggregate {
         for (&key, cells) in tiles {
             for (c, _) in self.tile_cells(key) {
                 self.cells.remove(&c);
+                self.seen_from.remove(&c);
             }
             for &(c, cell) in cells {
                 assert_eq!(self.tile_of(c), key, "cell {c:?} given for tile {key:?}");

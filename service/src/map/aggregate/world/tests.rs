@@ -4,7 +4,8 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rangegp_proto::msg::Provenance;
 use rangegp_sim::Heightmap;
 
-fn fold(agg: &mut WorldAggregate, terrain: &Heightmap, x: f64, y: f64, heading: f64) {
+/// Fits the seed-000 scanner's scan of `terrain` from (x, y) at `heading` and folds it in.
+pub(super) fn fold(agg: &mut WorldAggregate, terrain: &Heightmap, x: f64, y: f64, heading: f64) {
     let pose = Isometry3::from_parts(
         Translation3::new(x, y, 0.75),
         UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
