@@ -63,8 +63,8 @@ pub struct RawAnswer {
     pub by: Answerer,
     /// Horizontal distance from the answering map's sensor, metres. The aggregate's: from the
     /// sensors that fused the cells there, as fused with their heights
-    /// ([`crate::map::aggregate::world::WorldAggregate::seen_from_m`]; from the newest sensor where a cell keeps none, and
-    /// infinite without one).
+    /// ([`seen_from_m`](super::aggregate::world::WorldAggregate::seen_from_m); from the newest
+    /// sensor where a cell keeps none, and infinite without one).
     pub rho_m: f64,
 }
 

@@ -376,7 +376,7 @@ fn the_aggregate_is_tested_where_a_window_map_answers_too() {
         (window.iter().sum::<usize>(), aggregate.iter().sum::<usize>())
     };
     let mut snapshot = window.snapshot();
-    assert_eq!(tested(&snapshot), (tested(&snapshot).0, 0));
+    assert_eq!(tested(&snapshot).1, 0, "no aggregate, nothing to test");
     snapshot.aggregate = Some(Arc::new(aggregate));
     let (by_window, by_aggregate) = tested(&snapshot);
     assert!(by_window >= MIN_RESIDUALS, "{by_window} window residuals");
