@@ -484,12 +484,10 @@ impl WorldAggregate {
                     var: var as f64,
                     scans: 1,
                 };
-                let before_var = self.cells.get(&c).map(|cell| cell.var);
-                if !self.fuse(c, seen) {
+                let (x, y) = self.centre(c);
+                if !self.fuse(c, seen, (x - sensor.x).hypot(y - sensor.y)) {
                     continue;
                 }
-                let (x, y) = self.centre(c);
-                self.fold_seen_from(c, before_var, seen.var, (x - sensor.x).hypot(y - sensor.y));
                 kept.push((c, z, var));
                 dirty.extend(self.tiles_covering(c));
             }
@@ -531,16 +529,18 @@ impl WorldAggregate {
     /// left out instead. Predictions never replace a cell: a range map's height between its
     /// rings, behind an edge or at a rim depends on where it was seen from, so two views of an
     /// unchanged world disagree there (on rough relief that was most of the false changes);
-    /// only returns measure a change ([`Self::challenge`]).
-    fn fuse(&mut self, c: (i32, i32), seen: Cell) -> bool {
-        let Some(cell) = self.cells.get(&c).copied() else {
-            self.cells.insert(c, seen);
-            return true;
-        };
-        if self.params.change_detection && !self.agree(&cell, &seen) {
-            return false;
+    /// only returns measure a change ([`Self::challenge`]). The view's sensor stood
+    /// `distance_m` from the cell ([`Self::fold_seen_from`]).
+    fn fuse(&mut self, c: (i32, i32), seen: Cell, distance_m: f64) -> bool {
+        let before = self.cells.get(&c).copied();
+        if let Some(cell) = before {
+            if self.params.change_detection && !self.agree(&cell, &seen) {
+                return false;
+            }
         }
-        self.cells.insert(c, fused(cell, seen));
+        self.cells
+            .insert(c, before.map_or(seen, |cell| fused(cell, seen)));
+        self.fold_seen_from(c, before, seen, distance_m);
         true
     }
 

@@ -3,29 +3,39 @@
 //! up by it (`query::raw_aggregate_elevation`): a cell seen from 3 m errs unlike one seen only
 //! from 15 m, wherever the robot stands now (docs/EVALUATION.md "Calibration", step 22).
 
-use super::WorldAggregate;
+use super::{fused, Cell, WorldAggregate};
 
 impl WorldAggregate {
-    /// Folds a view from `distance_m` into cell `c`'s distance, as [`super::fused`] folds its
-    /// height: `before_var` is the cell's variance before the view (`None`: a new cell) and
-    /// `var` the view's. A cell that holds evidence of unknown views (restored, paged in,
-    /// corrected or replaced since) starts again from this view.
+    /// Folds a `view` from `distance_m` into cell `c`'s distance by [`fused`], as its height:
+    /// `before` is the cell before the view (`None`: a new cell). A cell that holds evidence of
+    /// unknown views (restored, paged in, corrected or replaced since) starts again from this
+    /// view.
     pub(super) fn fold_seen_from(
         &mut self,
         c: (i32, i32),
-        before_var: Option<f64>,
-        var: f64,
+        before: Option<Cell>,
+        view: Cell,
         distance_m: f64,
     ) {
-        let fused = match (before_var, self.seen_from.get(&c)) {
-            (Some(before), Some(&mean)) => {
-                let (p0, p1) = (1.0 / before, 1.0 / var);
-                (p0 * f64::from(mean) + p1 * distance_m) / (p0 + p1)
+        let distance = match (before, self.seen_from.get(&c)) {
+            (Some(cell), Some(&mean)) => {
+                let known = Cell {
+                    z: f64::from(mean),
+                    ..cell
+                };
+                fused(
+                    known,
+                    Cell {
+                        z: distance_m,
+                        ..view
+                    },
+                )
+                .z
             }
             _ => distance_m,
         };
-        if fused.is_finite() {
-            self.seen_from.insert(c, fused as f32);
+        if distance.is_finite() {
+            self.seen_from.insert(c, distance as f32);
         } else {
             self.seen_from.remove(&c);
         }
