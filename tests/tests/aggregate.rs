@@ -59,7 +59,13 @@ fn scans_evicted_from_the_window_are_answered_by_the_aggregate() -> anyhow::Resu
 
 #[test]
 fn rays_from_a_pose_out_of_the_window_are_answered_by_the_aggregate() -> anyhow::Result<()> {
-    let h = Harness::start(|c| c.window.capacity = 2)?;
+    // The maps' own σ: the prequential scales depend on which maps stood when each scan's
+    // returns were tested, which the concurrently fusing aggregate thread decides (seen from
+    // 0.3× to 3× here between runs); the calibration has its own tests.
+    let h = Harness::start(|c| {
+        c.window.capacity = 2;
+        c.gp.prequential_calibration = false;
+    })?;
     let mut publisher = h.publisher(8)?;
     let mut w = world(13, 6);
     let mut first = None;
@@ -141,10 +147,9 @@ fn rays_from_a_pose_out_of_the_window_are_answered_by_the_aggregate() -> anyhow:
             confident.push(*e);
         }
     }
-    // How many rays are confident depends on σ scales learnt while the aggregate thread fuses
-    // concurrently (a scan's returns test whichever maps stood then): 4 of 8 alone, 2 seen once
-    // under the whole suite's load. Two keep the accuracy check below from passing vacuously.
-    assert!(confident.len() >= 2, "{} confident rays", confident.len());
+    // 4 of 8 are confident (the same in every run: the maps' own σ); three keep the accuracy
+    // check below from passing vacuously.
+    assert!(confident.len() >= 3, "{} confident rays", confident.len());
     let e = rms(&confident);
     assert!(e < 0.05, "aggregate ray RMSE {e} over the confident rays");
 
