@@ -57,14 +57,15 @@ pub enum Answerer {
 /// An elevation answer before σ calibration, with what the calibration keys on.
 #[derive(Debug, Clone, Copy)]
 pub struct RawAnswer {
-    /// The map's own estimate.
+    /// The map's own estimate (the aggregate's with the grazing its fusing scans saw there,
+    /// [`seen_at`](super::aggregate::world::WorldAggregate::seen_at)).
     pub estimate: HeightEstimate,
     /// Who answered.
     pub by: Answerer,
     /// Horizontal distance from the answering map's sensor, metres. The aggregate's: from the
     /// sensors that fused the cells there, as fused with their heights
-    /// ([`seen_from_m`](super::aggregate::world::WorldAggregate::seen_from_m); from the newest
-    /// sensor where a cell keeps none, and infinite without one).
+    /// ([`seen_at`](super::aggregate::world::WorldAggregate::seen_at); from the newest sensor
+    /// where a cell keeps none, and infinite without one).
     pub rho_m: f64,
 }
 
@@ -163,10 +164,16 @@ pub fn raw_aggregate_elevation(snapshot: &MapSnapshot, x: f64, y: f64) -> Option
         .reach()
         .first()
         .map_or(f64::INFINITY, |[sx, sy, _]| (x - sx).hypot(y - sy));
-    agg.elevation(x, y).map(|estimate| RawAnswer {
-        estimate,
-        by: Answerer::Aggregate,
-        rho_m: agg.seen_from_m(x, y, newest),
+    agg.elevation(x, y).map(|estimate| {
+        let seen = agg.seen_at(x, y, newest);
+        RawAnswer {
+            estimate: HeightEstimate {
+                grazing: seen.grazing,
+                ..estimate
+            },
+            by: Answerer::Aggregate,
+            rho_m: seen.distance_m,
+        }
     })
 }
 

@@ -68,7 +68,8 @@ impl BinScale {
 }
 
 /// Upper edges of the grazing classes (an answer's [`HeightEstimate::grazing`]; the last class
-/// is open-ended and holds every answer that is not near a shadow, the aggregate's included).
+/// is open-ended and holds every answer that is not near a shadow; an aggregate answer's
+/// grazing is its fusing views', fused as its height).
 pub const GRAZING_EDGES: [f64; 2] = [0.5, 0.75];
 /// Number of grazing classes.
 pub const CLASSES: usize = GRAZING_EDGES.len() + 1;

@@ -136,7 +136,7 @@ impl WorldAggregate {
     pub(super) fn clear(&mut self, c: (i32, i32), local: &LocalRangeMap, this: u64) -> Option<Change> {
         let cell = self.cells.get(&c).copied()?;
         let (x_m, y_m) = self.centre(c);
-        let height = self.window_answer(local, c).map(|(z, var)| Cell {
+        let height = self.window_answer(local, c).map(|(z, var, _)| Cell {
             z: z as f64,
             var: var as f64,
             scans: 1,

@@ -12,6 +12,7 @@ mod answers;
 mod change;
 mod pages;
 mod seen_from;
+pub use seen_from::{Seen, SQUARE};
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
@@ -262,11 +263,12 @@ pub struct WorldAggregate {
     // its data weighs, per range bin, in the variance it is fused with (none until learnt). Not
     // checkpointed: relearnt.
     departure_weights: [f64; BINS],
-    // Each fused cell's sensor distance, fused by inverse variance as its height (`seen_from`):
-    // what the aggregate's σ factors are keyed on. Not checkpointed: a cell restored, paged in,
-    // corrected or replaced has none until a scan fuses it again (answers there fall back to
-    // the distance from the newest sensor).
-    seen_from: HashMap<(i32, i32), f32>,
+    // How each fused cell was seen: its sensors' distance and their rays' grazing, fused by
+    // inverse variance as its height (`seen_from`): what the aggregate's σ factors are keyed on.
+    // Not checkpointed: a cell restored, paged in, corrected or replaced has none until a scan
+    // fuses it again (answers there fall back to the distance from the newest sensor, seen
+    // squarely).
+    seen_from: HashMap<(i32, i32), seen_from::SeenFrom>,
 }
 
 impl WorldAggregate {
@@ -467,7 +469,7 @@ impl WorldAggregate {
                 }
             }
             let now_replaced: BTreeSet<(i32, i32)> = replaced.iter().map(|c| c.cell).collect();
-            for &(c, z, var) in &cells {
+            for &((c, z, var), grazing) in &cells {
                 if now_replaced.contains(&c) {
                     continue;
                 }
@@ -485,7 +487,7 @@ impl WorldAggregate {
                     scans: 1,
                 };
                 let (x, y) = self.centre(c);
-                if !self.fuse(c, seen, (x - sensor.x).hypot(y - sensor.y)) {
+                if !self.fuse(c, seen, (x - sensor.x).hypot(y - sensor.y), grazing) {
                     continue;
                 }
                 kept.push((c, z, var));
@@ -530,8 +532,8 @@ impl WorldAggregate {
     /// rings, behind an edge or at a rim depends on where it was seen from, so two views of an
     /// unchanged world disagree there (on rough relief that was most of the false changes);
     /// only returns measure a change ([`Self::challenge`]). The view's sensor stood
-    /// `distance_m` from the cell ([`Self::fold_seen_from`]).
-    fn fuse(&mut self, c: (i32, i32), seen: Cell, distance_m: f64) -> bool {
+    /// `distance_m` from the cell and its rays met it at `grazing` ([`Self::fold_seen_from`]).
+    fn fuse(&mut self, c: (i32, i32), seen: Cell, distance_m: f64, grazing: f64) -> bool {
         let before = self.cells.get(&c).copied();
         if let Some(cell) = before {
             if self.params.change_detection && !self.agree(&cell, &seen) {
@@ -540,14 +542,15 @@ impl WorldAggregate {
         }
         self.cells
             .insert(c, before.map_or(seen, |cell| fused(cell, seen)));
-        self.fold_seen_from(c, before, seen, distance_m);
+        self.fold_seen_from(c, before, seen, distance_m, grazing);
         true
     }
 
     /// The cells within `reach_m` (at most `max_reach_m` and the scan's range) of `local`'s
-    /// sensor whose height it predicts surely enough to fuse, with their answers
-    /// ([`Self::window_answer`]), in parallel on the current rayon pool.
-    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<FusedCell> {
+    /// sensor whose height it predicts surely enough to fuse, with their answers and the
+    /// grazing of its rays there ([`Self::window_answer`]), in parallel on the current rayon
+    /// pool.
+    fn predicted_cells(&self, local: &LocalRangeMap, reach_m: f64) -> Vec<(FusedCell, f64)> {
         let s = local.sensor_position();
         let reach = local.max_range().min(self.params.max_reach_m).min(reach_m);
         let (lo, hi) = (
@@ -564,7 +567,8 @@ impl WorldAggregate {
                 if (x - s.x).hypot(y - s.y) >= reach {
                     return None;
                 }
-                self.window_answer(local, c).map(|(z, var)| (c, z, var))
+                self.window_answer(local, c)
+                    .map(|(z, var, grazing)| ((c, z, var), grazing))
             })
             .collect()
     }
@@ -572,9 +576,9 @@ impl WorldAggregate {
     /// `local`'s answer at the centre of cell `c` as the aggregate fuses it: its height and the
     /// variance the window owns there ([`departed_var`]: the map's, plus its squared
     /// departure from the map's nearest data as weighted for that range), rounded as the ledger
-    /// keeps them (f32), so that a correction takes out exactly what went in. `None` where the
-    /// map's own σ exceeds `max_cell_sd_m`.
-    fn window_answer(&self, local: &LocalRangeMap, c: (i32, i32)) -> Option<(f32, f32)> {
+    /// keeps them (f32), so that a correction takes out exactly what went in; and its rays'
+    /// grazing there. `None` where the map's own σ exceeds `max_cell_sd_m`.
+    fn window_answer(&self, local: &LocalRangeMap, c: (i32, i32)) -> Option<(f32, f32, f64)> {
         let (x, y) = self.centre(c);
         let max_var = self.params.max_cell_sd_m.powi(2);
         let e = local
@@ -582,7 +586,7 @@ impl WorldAggregate {
             .filter(|e| e.var <= max_var && e.var > 0.0)?;
         let s = local.sensor_position();
         let var = departed_var(&self.departure_weights, (x - s.x).hypot(y - s.y), &e) as f32;
-        (var > 0.0 && var.is_finite()).then_some((e.z as f32, var))
+        (var > 0.0 && var.is_finite()).then_some((e.z as f32, var, e.grazing))
     }
 
     /// The centre of cell `c`, metres.

@@ -1,65 +1,106 @@
-//! How far from each cell the scans that fused it stood: the sensors' horizontal distances,
-//! fused by inverse variance as the heights are. The aggregate's σ factors are learnt and looked
-//! up by it (`query::raw_aggregate_elevation`): a cell seen from 3 m errs unlike one seen only
-//! from 15 m, wherever the robot stands now (docs/EVALUATION.md "Calibration", step 22).
+//! How each cell was seen: how far from it the scans that fused it stood, and how squarely
+//! their rays met it, each fused by inverse variance as the heights are. The aggregate's σ
+//! factors are learnt and looked up by both (`query::raw_aggregate_elevation`): a cell seen from
+//! 3 m errs unlike one seen only from 15 m, wherever the robot stands now, and one every view saw
+//! at the edge of a shadow unlike one seen squarely (docs/EVALUATION.md "Calibration", steps 22
+//! and 23).
 
 use super::{fused, Cell, WorldAggregate};
 
+/// The grazing a view's squareness is capped at before fusing: flat ground's, the centre of the
+/// widest grazing class (an unmeasured, infinite grazing counts as this too).
+pub const SQUARE: f64 = 1.0;
+
+/// How one cell was seen ([`WorldAggregate::seen_at`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct SeenFrom {
+    /// The fusing sensors' horizontal distance, metres.
+    distance_m: f32,
+    /// The views' grazing ([`HeightEstimate::grazing`](crate::map::local::HeightEstimate::grazing)),
+    /// each capped at [`SQUARE`].
+    grazing: f32,
+}
+
+/// How the fusing scans saw map (x, y) ([`WorldAggregate::seen_at`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Seen {
+    /// Horizontal distance from the fusing sensors, metres.
+    pub distance_m: f64,
+    /// Grazing of their rays there, at most [`SQUARE`].
+    pub grazing: f64,
+}
+
 impl WorldAggregate {
-    /// Folds a `view` from `distance_m` into cell `c`'s distance by [`fused`], as its height:
-    /// `before` is the cell before the view (`None`: a new cell). A cell that holds evidence of
-    /// unknown views (restored, paged in, corrected or replaced since) starts again from this
-    /// view.
+    /// Folds a view from `distance_m` at `grazing` into how cell `c` was seen, by [`fused`], as
+    /// its height: `before` is the cell before the view (`None`: a new cell). A cell that holds
+    /// evidence of unknown views (restored, paged in, corrected or replaced since) starts again
+    /// from this view.
     pub(super) fn fold_seen_from(
         &mut self,
         c: (i32, i32),
         before: Option<Cell>,
         view: Cell,
         distance_m: f64,
+        grazing: f64,
     ) {
-        let distance = match (before, self.seen_from.get(&c)) {
-            (Some(cell), Some(&mean)) => {
-                let known = Cell {
-                    z: f64::from(mean),
-                    ..cell
-                };
+        let grazing = if grazing.is_nan() {
+            SQUARE
+        } else {
+            grazing.min(SQUARE)
+        };
+        let fold = |known: f32, new: f64| match before {
+            Some(cell) => {
                 fused(
-                    known,
                     Cell {
-                        z: distance_m,
-                        ..view
+                        z: f64::from(known),
+                        ..cell
                     },
+                    Cell { z: new, ..view },
                 )
                 .z
             }
-            _ => distance_m,
+            None => new,
         };
-        if distance.is_finite() {
-            self.seen_from.insert(c, distance as f32);
+        let seen = match self.seen_from.get(&c) {
+            Some(s) if before.is_some() => (fold(s.distance_m, distance_m), fold(s.grazing, grazing)),
+            _ => (distance_m, grazing),
+        };
+        if seen.0.is_finite() && seen.1.is_finite() {
+            self.seen_from.insert(
+                c,
+                SeenFrom {
+                    distance_m: seen.0 as f32,
+                    grazing: seen.1 as f32,
+                },
+            );
         } else {
             self.seen_from.remove(&c);
         }
     }
 
-    /// The fusing sensors' distance at map (x, y), metres: bilinear between the neighbouring
-    /// cells' centres, a cell without one counting as `fallback_m` (so the answer is continuous
-    /// in (x, y) wherever cells gain or lack it).
-    pub fn seen_from_m(&self, x: f64, y: f64, fallback_m: f64) -> f64 {
+    /// How the fusing scans saw map (x, y): bilinear between the neighbouring cells' centres, a
+    /// cell without a record counting as seen squarely from `fallback_m` (so the answer is
+    /// continuous in (x, y) wherever cells gain or lack one).
+    pub fn seen_at(&self, x: f64, y: f64, fallback_m: f64) -> Seen {
         let u = x / self.params.cell_m - 0.5;
         let v = y / self.params.cell_m - 0.5;
         let (i0, j0) = (u.floor() as i32, v.floor() as i32);
         let (fu, fv) = (u - u.floor(), v - v.floor());
-        let mut sum = 0.0;
+        let mut seen = Seen {
+            distance_m: 0.0,
+            grazing: 0.0,
+        };
         for (di, wu) in [(0, 1.0 - fu), (1, fu)] {
             for (dj, wv) in [(0, 1.0 - fv), (1, fv)] {
                 let w = wu * wv;
                 if w > 0.0 {
-                    let d = self.seen_from.get(&(i0 + di, j0 + dj)).copied();
-                    sum += w * d.map_or(fallback_m, f64::from);
+                    let s = self.seen_from.get(&(i0 + di, j0 + dj));
+                    seen.distance_m += w * s.map_or(fallback_m, |s| f64::from(s.distance_m));
+                    seen.grazing += w * s.map_or(SQUARE, |s| f64::from(s.grazing));
                 }
             }
         }
-        sum
+        seen
     }
 }
 
@@ -67,6 +108,7 @@ impl WorldAggregate {
 mod tests {
     use super::super::tests::fold;
     use super::super::{WorldAggregate, WorldParams};
+    use super::SQUARE;
     use rangegp_sim::Heightmap;
 
     #[test]
@@ -78,20 +120,42 @@ mod tests {
         let (d1, d2) = (x.hypot(y), (x + 4.0).hypot(y));
         fold(&mut agg, &terrain, 0.0, 0.0, 0.0);
         let v1 = agg.cells()[&c].var;
-        assert!((agg.seen_from_m(x, y, f64::NAN) - d1).abs() < 1e-5);
+        assert!((agg.seen_at(x, y, f64::NAN).distance_m - d1).abs() < 1e-5);
         // A second view from 4 m farther back: the distances weigh as the heights did.
         fold(&mut agg, &terrain, -4.0, 0.0, 0.0);
         let vf = agg.cells()[&c].var;
         let v2 = 1.0 / (1.0 / vf - 1.0 / v1);
         let want = vf * (d1 / v1 + d2 / v2);
-        let got = agg.seen_from_m(x, y, f64::NAN);
+        let got = agg.seen_at(x, y, f64::NAN).distance_m;
         assert!(d1 < got && got < d2, "{got} outside ({d1}, {d2})");
         assert!((got - want).abs() < 1e-4, "{got} against {want}");
-        // Where no cell is fused, the caller's distance; between, a blend that never jumps.
-        assert_eq!(agg.seen_from_m(500.0, 500.0, 7.5), 7.5);
+        // Where no cell is fused, the caller's distance, seen squarely; between, a blend that
+        // never jumps.
+        let far = agg.seen_at(500.0, 500.0, 7.5);
+        assert_eq!((far.distance_m, far.grazing), (7.5, SQUARE));
         // (The fused cells begin about x = −1 m, 3 m ahead of the second view.)
-        let step = |x: f64| (agg.seen_from_m(x + 1e-6, 0.3, 50.0) - agg.seen_from_m(x, 0.3, 50.0)).abs();
+        let at = |x: f64| agg.seen_at(x, 0.3, 50.0).distance_m;
+        let step = |x: f64| (at(x + 1e-6) - at(x)).abs();
         assert!((0..200).all(|k| step(-2.0 + 0.01 * f64::from(k)) < 1e-3));
-        assert!(agg.seen_from_m(-2.0, 0.3, 50.0) > 49.0 && agg.seen_from_m(0.0, 0.3, 50.0) < 5.0);
+        assert!(at(-2.0) > 49.0 && at(0.0) < 5.0);
+    }
+
+    #[test]
+    fn a_cell_seen_only_at_a_shadows_edge_keeps_its_views_grazing() {
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        let c = (40, 3);
+        let view = |var: f64| super::super::Cell {
+            z: 0.0,
+            var,
+            scans: 1,
+        };
+        agg.fold_seen_from(c, None, view(1e-4), 5.0, 0.3);
+        let (x, y) = agg.centre(c);
+        assert!((agg.seen_at(x, y, 0.0).grazing - 0.3).abs() < 1e-6);
+        // A square view four times surer weighs four times as much; an unmeasured one counts as
+        // square.
+        agg.fold_seen_from(c, Some(view(1e-4)), view(2.5e-5), 5.0, f64::INFINITY);
+        let got = agg.seen_at(x, y, 0.0).grazing;
+        assert!((got - (0.3 + 4.0 * SQUARE) / 5.0).abs() < 1e-6, "{got}");
     }
 }
