@@ -61,7 +61,8 @@ fn scans_evicted_from_the_window_are_answered_by_the_aggregate() -> anyhow::Resu
 fn rays_from_a_pose_out_of_the_window_are_answered_by_the_aggregate() -> anyhow::Result<()> {
     // The maps' own σ: the prequential scales depend on which maps stood when each scan's
     // returns were tested, which the concurrently fusing aggregate thread decides (seen from
-    // 0.3× to 3× here between runs); the calibration has its own tests.
+    // 0.3× to 3× here between runs); the calibration has its own tests. (Without it the window
+    // maps keep no index of their data, which nothing here asks for.)
     let h = Harness::start(|c| {
         c.window.capacity = 2;
         c.gp.prequential_calibration = false;
@@ -143,12 +144,12 @@ fn rays_from_a_pose_out_of_the_window_are_answered_by_the_aggregate() -> anyhow:
             "range {:?} vs truth {truth}: {item:?}",
             item.range_m
         );
-        if sd < 0.05 {
+        if sd < 0.05 && item.source == Source::Aggregate {
             confident.push(*e);
         }
     }
-    // 4 of 8 are confident (the same in every run: the maps' own σ); three keep the accuracy
-    // check below from passing vacuously.
+    // 4 of 8 aggregate rays are confident (the same in every run: the maps' own σ); three keep
+    // the accuracy check below from passing vacuously.
     assert!(confident.len() >= 3, "{} confident rays", confident.len());
     let e = rms(&confident);
     assert!(e < 0.05, "aggregate ray RMSE {e} over the confident rays");

@@ -184,7 +184,8 @@ pub struct SigmaScales {
     /// Weight of a window answer's squared departure from its nearest data in its own
     /// variance, by range bin (one of [`DEPARTURE_WEIGHTS`]).
     pub departure: [f64; BINS],
-    /// Aggregate answers (range from the newest sensor position; all in the last class).
+    /// Aggregate answers (range bin and grazing class from how the fusing scans saw the cells:
+    /// `WorldAggregate::seen_at`; all level).
     pub aggregate: ScaleTable,
     /// The shape of the calibrated errors, for probabilities beyond a limit (planner risks).
     pub tails: TailShape,

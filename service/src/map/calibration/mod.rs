@@ -6,9 +6,10 @@
 //! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
 //! area their return stands for and kept per (source, level class, grazing class, range bin from
 //! the answering sensor; for the aggregate, from the sensors that fused the cells there, and its
-//! grazing class from how squarely their rays met them) over the last scans. The aggregate is also tested, at half weight, on every return a window map
-//! answers; within a cell, each fifth of them by the answer's
-//! own σ gets the factor on σ whose 68 % and 95 % intervals cover that share. The level class
+//! grazing class from how squarely their rays met them) over the last scans. The aggregate is
+//! also tested, at half weight, on every return a window map answers; within a cell, each fifth
+//! of them by the answer's own σ gets the factor on σ whose 68 % and 95 % intervals cover that
+//! share. The level class
 //! ([`HeightEstimate::rise`](super::local::HeightEstimate::rise)) tells ground off the robot's
 //! level from level ground, which err differently at the same range. Before the factors, each
 //! range bin learns how much an answer's departure from its map's nearest data

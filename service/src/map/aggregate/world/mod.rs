@@ -12,7 +12,7 @@ mod answers;
 mod change;
 mod pages;
 mod seen_from;
-pub use seen_from::{Seen, SQUARE};
+pub use seen_from::Seen;
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};

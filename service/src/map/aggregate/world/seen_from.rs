@@ -48,21 +48,17 @@ impl WorldAggregate {
         } else {
             grazing.min(SQUARE)
         };
-        let fold = |known: f32, new: f64| match before {
-            Some(cell) => {
-                fused(
-                    Cell {
+        let seen = match (before, self.seen_from.get(&c)) {
+            (Some(cell), Some(s)) => {
+                let fold = |known: f32, new: f64| {
+                    let known = Cell {
                         z: f64::from(known),
                         ..cell
-                    },
-                    Cell { z: new, ..view },
-                )
-                .z
+                    };
+                    fused(known, Cell { z: new, ..view }).z
+                };
+                (fold(s.distance_m, distance_m), fold(s.grazing, grazing))
             }
-            None => new,
-        };
-        let seen = match self.seen_from.get(&c) {
-            Some(s) if before.is_some() => (fold(s.distance_m, distance_m), fold(s.grazing, grazing)),
             _ => (distance_m, grazing),
         };
         if seen.0.is_finite() && seen.1.is_finite() {
