@@ -101,7 +101,8 @@ fn the_unseen_relief_widens_sigma_where_no_scan_saw() -> anyhow::Result<()> {
     // Opt-in (`gp.unseen_relief`): on the quick matrices of the three guard seeds, pooled, it
     // lifts occluded ground's 95 % coverage from 0.884 to 0.891 (measured at step 22; 0.876 to
     // 0.883 before the aggregate's factors were keyed on where its cells were seen from, step
-    // 22; 0.875 to 0.882 before the aggregate fused with the departure, step 17). On seed 0 alone it lifted it
+    // 22; 0.875 to 0.882 before the aggregate fused with the departure, step 17). On seed 0
+    // alone it lifted it
     // from 0.854 to 0.864 before the departure from the data entered σ (step 16; 0.869 to 0.870
     // since), 0.872 to 0.891 before the level classes, 0.835 to 0.848 before the other views'
     // disagreement, 0.814 to 0.846 before each return also tested maps that looked from

@@ -43,11 +43,8 @@ impl WorldAggregate {
         distance_m: f64,
         grazing: f64,
     ) {
-        let grazing = if grazing.is_nan() {
-            SQUARE
-        } else {
-            grazing.min(SQUARE)
-        };
+        // `min` takes the number over a NaN: an unmeasured grazing counts as square too.
+        let grazing = grazing.min(SQUARE);
         let seen = match (before, self.seen_from.get(&c)) {
             (Some(cell), Some(s)) => {
                 let fold = |known: f32, new: f64| {
@@ -153,5 +150,8 @@ mod tests {
         agg.fold_seen_from(c, Some(view(1e-4)), view(2.5e-5), 5.0, f64::INFINITY);
         let got = agg.seen_at(x, y, 0.0).grazing;
         assert!((got - (0.3 + 4.0 * SQUARE) / 5.0).abs() < 1e-6, "{got}");
+        agg.fold_seen_from((41, 3), None, view(1e-4), 5.0, f64::NAN);
+        let (x, y) = agg.centre((41, 3));
+        assert_eq!(agg.seen_at(x, y, 0.0).grazing, SQUARE);
     }
 }
