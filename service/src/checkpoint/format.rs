@@ -14,6 +14,7 @@
 
 use super::format3::{self, CheckpointV3};
 use super::format4::{self, CheckpointV4};
+use super::format5::{self, CheckpointV5};
 use super::Checkpoint;
 use rangegp_proto::codec::{self, Encoding, MAX_DECODE_BYTES};
 use serde::de::DeserializeOwned;
@@ -23,8 +24,9 @@ use thiserror::Error;
 /// First bytes of every checkpoint.
 pub const MAGIC: [u8; 8] = *b"RGPCKPT\0";
 /// Layout version; bumped when [`Checkpoint`] changes (4: the aggregate keeps where its last
-/// scans stood; 5: and the departure weights each scan of its history was fused with).
-pub const FORMAT_VERSION: u32 = 5;
+/// scans stood; 5: and the departure weights each scan of its history was fused with; 6: and
+/// how each cell was seen, with the learnt σ scales).
+pub const FORMAT_VERSION: u32 = 6;
 const HEADER_LEN: usize = 8 + 4 + 8 + 8;
 const TRAILER_LEN: usize = 8;
 
@@ -75,8 +77,8 @@ pub fn encode(checkpoint: &Checkpoint, identity: u64) -> Result<Vec<u8>, FormatE
 }
 
 /// Decodes a checkpoint, checking magic, version, identity, length and checksum before the
-/// payload is parsed; format-3 and format-4 ones are read too ([`super::format3`],
-/// [`super::format4`]).
+/// payload is parsed; format-3, -4 and -5 ones are read too ([`super::format3`],
+/// [`super::format4`], [`super::format5`]).
 pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
     match decode_framed(MAGIC, FORMAT_VERSION, bytes, identity) {
         Err(FormatError::Version {
@@ -87,6 +89,10 @@ pub fn decode(bytes: &[u8], identity: u64) -> Result<Checkpoint, FormatError> {
             found: format4::VERSION,
             ..
         }) => decode_framed::<CheckpointV4>(MAGIC, format4::VERSION, bytes, identity).map(Checkpoint::from),
+        Err(FormatError::Version {
+            found: format5::VERSION,
+            ..
+        }) => decode_framed::<CheckpointV5>(MAGIC, format5::VERSION, bytes, identity).map(Checkpoint::from),
         decoded => decoded,
     }
 }

@@ -48,7 +48,9 @@ impl From<CheckpointV3> for Checkpoint {
                 inserts: c.world.inserts,
                 history: c.world.history.into_iter().map(ScanRef::from).collect(),
                 views: Vec::new(),
+                seen: Vec::new(),
             },
+            scales: None,
         }
     }
 }

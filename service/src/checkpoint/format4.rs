@@ -78,7 +78,9 @@ impl From<CheckpointV4> for Checkpoint {
                 inserts: c.world.inserts,
                 history: c.world.history.into_iter().map(ScanRef::from).collect(),
                 views: c.world.views,
+                seen: Vec::new(),
             },
+            scales: None,
         }
     }
 }

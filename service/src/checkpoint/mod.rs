@@ -8,18 +8,23 @@
 //! - [`pages`]: the site map: tiles beyond the radius, one file each, back when the robot is.
 //!
 //! A checkpoint holds what the daemon needs to resume its map: the aggregate's cells (tiles are
-//! refitted from them), the scans it folded in, and the online kernel hyperparameters. The
-//! window of local maps is not kept: it is rebuilt by the next scans within a second.
+//! refitted from them) and how each was seen, the scans it folded in, the online kernel
+//! hyperparameters and the learnt σ scales. The window of local maps is not kept: it is rebuilt
+//! by the next scans within a second.
 
 pub mod format;
 pub mod format3;
 pub mod format4;
+pub mod format5;
 pub mod pages;
 pub mod store;
 pub mod writer;
 
-use crate::map::aggregate::world::{WorldAggregate, WorldParams, WorldState, HISTORY_LEN, VIEWS_KEPT};
+use crate::map::aggregate::world::{
+    WorldAggregate, WorldParams, WorldState, HISTORY_LEN, SQUARE, VIEWS_KEPT,
+};
 use crate::map::aggregate::AggregateError;
+use crate::map::scales::SigmaScales;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -38,6 +43,10 @@ pub struct Checkpoint {
     pub length_scale: f64,
     /// The aggregate.
     pub world: WorldState,
+    /// The σ scales the calibrator had learnt (`None`: none kept, as in format 5 and before):
+    /// a restarted daemon answers with them, and they stand for each part the calibrator has
+    /// not relearnt since ([`Calibrator::with_prior`](crate::map::calibration::Calibrator::with_prior)).
+    pub scales: Option<SigmaScales>,
 }
 
 /// Why a decoded checkpoint cannot be restored.
@@ -119,6 +128,23 @@ impl Checkpoint {
             return Err(RestoreError::Invalid(
                 "more recent sensor positions than kept, or one not finite",
             ));
+        }
+        if w.seen.windows(2).any(|p| p[0].0 >= p[1].0) {
+            return Err(RestoreError::Invalid(
+                "seen-from records are not sorted and unique",
+            ));
+        }
+        let seen_ok = w
+            .seen
+            .iter()
+            .all(|(_, [d, g])| d.is_finite() && *d >= 0.0 && (0.0..=SQUARE as f32).contains(g));
+        if !seen_ok {
+            return Err(RestoreError::Invalid(
+                "a cell's seen-from distance or grazing is out of its domain",
+            ));
+        }
+        if let Some(scales) = &self.scales {
+            scales.check().map_err(RestoreError::Invalid)?;
         }
         Ok(WorldAggregate::from_state(w.clone())?)
     }
@@ -219,7 +245,14 @@ pub(crate) mod tests {
                 inserts: 1,
                 history,
                 views: vec![[0.5, -1.0]],
+                seen: vec![((0, 0), [3.5, 0.4]), ((0, 1), [12.0, 1.0]), ((5, 2), [7.25, 0.8])],
             },
+            scales: Some(SigmaScales {
+                departure: [0.0, 1.0 / 64.0, 0.25, 0.25, 1.0, 0.0, 0.0],
+                tails: crate::map::scales::TailShape { dof: 3.0, scale: 0.8 },
+                correlation: crate::map::scales::ErrorCorrelation { length_m: 0.3 },
+                ..SigmaScales::default()
+            }),
         }
     }
 
@@ -236,6 +269,41 @@ pub(crate) mod tests {
         let world = back.restore(&WorldParams::default()).expect("restore");
         assert_eq!(world.inserts(), 1);
         assert!(world.elevation(1.0, 1.0).is_some());
+        // How its cells were seen comes back with them.
+        assert_eq!(world.state().seen, c.world.seen);
+        let seen = world.seen_at(0.125, 0.125, 99.0);
+        assert_eq!((seen.distance_m, seen.grazing), (3.5, f64::from(0.4f32)));
+    }
+
+    #[test]
+    fn a_format_5_checkpoint_is_read_with_no_seen_records_and_no_scales() {
+        let c = sample();
+        let old = format5::CheckpointV5 {
+            created_unix_ns: c.created_unix_ns,
+            kernel_variance: c.kernel_variance,
+            length_scale: c.length_scale,
+            world: format5::WorldStateV5 {
+                params: c.world.params,
+                cells: c.world.cells.clone(),
+                inserts: c.world.inserts,
+                history: c.world.history.clone(),
+                views: c.world.views.clone(),
+            },
+        };
+        let bytes = format::encode_framed(format::MAGIC, format5::VERSION, &old, id()).expect("encode");
+        let back = decode(&bytes, id()).expect("a format-5 checkpoint decodes");
+        let expected = Checkpoint {
+            world: WorldState {
+                seen: Vec::new(),
+                ..c.world.clone()
+            },
+            scales: None,
+            ..c
+        };
+        assert_eq!(back, expected);
+        let world = back.restore(&WorldParams::default()).expect("restore");
+        let seen = world.seen_at(0.125, 0.125, 99.0);
+        assert_eq!((seen.distance_m, seen.grazing), (99.0, SQUARE));
     }
 
     /// `c`'s history as formats 3 and 4 kept it, and as they are read: with weights 0.
@@ -281,8 +349,10 @@ pub(crate) mod tests {
         let expected = Checkpoint {
             world: WorldState {
                 history: read,
+                seen: Vec::new(),
                 ..c.world
             },
+            scales: None,
             ..c
         };
         assert_eq!(back, expected);
@@ -310,8 +380,10 @@ pub(crate) mod tests {
             world: WorldState {
                 views: Vec::new(),
                 history: read,
+                seen: Vec::new(),
                 ..c.world
             },
+            scales: None,
             ..c
         };
         assert_eq!(back, without_views);
@@ -371,6 +443,30 @@ pub(crate) mod tests {
         let mut c = sample();
         c.world.views = vec![[0.0, 0.0]; VIEWS_KEPT + 1];
         assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        let mut c = sample();
+        c.world.seen.swap(0, 1);
+        assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        for bad in [[-1.0, 0.5], [f32::NAN, 0.5], [3.0, 1.5], [3.0, f32::INFINITY]] {
+            let mut c = sample();
+            c.world.seen[1].1 = bad;
+            assert!(
+                matches!(c.restore(&params), Err(RestoreError::Invalid(_))),
+                "{bad:?}"
+            );
+        }
+        let damaged: [&dyn Fn(&mut SigmaScales); 4] = [
+            &|s| s.correlation.length_m = 0.0,
+            &|s| s.tails.scale = f64::NAN,
+            &|s| s.departure[3] = -0.25,
+            &|s| s.relief.var_m2[0] = f64::INFINITY,
+        ];
+        for damage in damaged {
+            let mut c = sample();
+            if let Some(scales) = c.scales.as_mut() {
+                damage(scales);
+            }
+            assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
+        }
         assert!(sample().restore(&params).is_ok());
         let other = WorldParams {
             cell_m: 0.5,

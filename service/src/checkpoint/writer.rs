@@ -36,7 +36,8 @@ impl Writer {
 
     /// Writes the published aggregate if it is not the one written last.
     pub fn write_if_changed(&mut self, state: &DaemonState) {
-        let Some(world) = state.snapshot.load().aggregate.clone() else {
+        let snapshot = state.snapshot.load_full();
+        let Some(world) = snapshot.aggregate.clone() else {
             return;
         };
         if self.last.as_ref().is_some_and(|w| Arc::ptr_eq(w, &world)) {
@@ -60,6 +61,7 @@ impl Writer {
             kernel_variance: kernel.variance,
             length_scale: kernel.length_scale,
             world: world.state(),
+            scales: Some(snapshot.scales),
         };
         let m = &state.metrics;
         let written = encode(&checkpoint, self.identity)

@@ -5,6 +5,7 @@ use super::AggregateFeed;
 use crate::ingest::{Arrival, LatestQueue};
 use crate::map::calibration::Calibrator;
 use crate::map::local::{hyper_sample, HyperSample, MapParams};
+use crate::map::scales::SigmaScales;
 use crate::map::{LocalRangeMap, MapSnapshot, Window};
 use crate::scan::{RejectReason, ScanInput};
 use crate::shutdown::Shutdown;
@@ -28,6 +29,9 @@ pub(super) struct FitOutputs {
     pub relief: bool,
     /// Weight of the other maps' disagreement far from data (`gp.view_disagreement`).
     pub view_disagreement: f64,
+    /// σ scales restored from a checkpoint, which the calibrator starts from
+    /// ([`Calibrator::with_prior`]).
+    pub prior: Option<SigmaScales>,
     /// Where a [`MapUpdate`] goes when a scan's map is published.
     pub updates: zenoh::pubsub::Publisher<'static>,
 }
@@ -42,9 +46,13 @@ pub(super) fn fit_loop(
     shutdown: &Shutdown,
 ) {
     let mut window = Window::new(capacity);
-    let mut calibrator = outputs
-        .calibrate
-        .then(|| Calibrator::new(outputs.relief).with_view_disagreement(outputs.view_disagreement));
+    let mut calibrator = outputs.calibrate.then(|| {
+        let fresh = Calibrator::new(outputs.relief).with_view_disagreement(outputs.view_disagreement);
+        match outputs.prior {
+            Some(prior) => fresh.with_prior(prior),
+            None => fresh,
+        }
+    });
     while !shutdown.is_triggered() {
         let Some(Arrival { scan, received }) = queue.pop_timeout(Duration::from_millis(50)) else {
             continue;

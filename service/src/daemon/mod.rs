@@ -20,6 +20,7 @@ use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue};
 use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
+use crate::map::scales::SigmaScales;
 use crate::map::{LocalRangeMap, MapSnapshot};
 use crate::metrics::Metrics;
 use crate::scan::ScanInput;
@@ -131,11 +132,24 @@ impl DaemonBuilder {
             let c = &r.checkpoint;
             params.kernel = params.kernel.with(c.kernel_variance, c.length_scale);
         }
+        // The σ scales learnt before the restart, where this daemon learns them too: it answers
+        // with them at once, and its calibrator keeps each part until it has relearnt it.
+        let prior = restored
+            .as_ref()
+            .filter(|_| config.gp.prequential_calibration)
+            .and_then(|r| r.checkpoint.scales)
+            .map(|s| SigmaScales {
+                relief_in_heights: config.gp.unseen_relief,
+                view_disagreement: config.gp.view_disagreement,
+                ..s
+            });
         let world = restored.map(|r| Arc::new(r.world));
         let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(DaemonState {
             snapshot: ArcSwap::from_pointee(
-                MapSnapshot::new(Vec::new(), world.clone()).with_max_sigma(config.query.max_sigma_m),
+                MapSnapshot::new(Vec::new(), world.clone())
+                    .with_scales(prior.unwrap_or_default())
+                    .with_max_sigma(config.query.max_sigma_m),
             ),
             metrics: Arc::clone(&metrics),
             keys: config.keys(),
@@ -287,6 +301,7 @@ impl DaemonBuilder {
                 calibrate: config.gp.prequential_calibration,
                 relief: config.gp.unseen_relief,
                 view_disagreement: config.gp.view_disagreement,
+                prior,
                 updates,
             };
             daemon.fitter = Some(spawn("rangegp-fit", move || {

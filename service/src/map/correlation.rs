@@ -90,6 +90,11 @@ impl CorrelationLearner {
         }
     }
 
+    /// Whether [`MIN_PAIRS`] are held: whether [`Self::correlation`] is learnt from them.
+    pub fn holds_enough(&self) -> bool {
+        self.pairs.len() >= MIN_PAIRS
+    }
+
     /// The correlation the pairs give: the default until [`MIN_PAIRS`] are held (or while
     /// the noise leaves no error variance to correlate), then the Matérn-3/2 length whose mean
     /// correlation at the pairs' separations equals the estimated ρ (clamped to

@@ -78,6 +78,11 @@ impl ReliefLearner {
         }
     }
 
+    /// Whether any bin holds [`MIN_DEPARTURES`]: whether [`Self::relief`] is learnt from them.
+    pub fn holds_enough(&self) -> bool {
+        self.bins.iter().any(|q| q.len() >= MIN_DEPARTURES)
+    }
+
     /// The relief variance by distance bin: each bin's mean square departure less its noise,
     /// never less than a nearer bin's (a bin short of [`MIN_DEPARTURES`] takes the nearer one's).
     pub fn relief(&self) -> Relief {

@@ -4,6 +4,7 @@
 
 use super::local::HeightEstimate;
 use rangegp_proto::msg::Source;
+use serde::{Deserialize, Serialize};
 
 /// Upper edges of the range bins, metres of horizontal distance from the answering sensor (the
 /// last bin is open-ended). Doubling widths: the error of a range map grows with range.
@@ -18,7 +19,7 @@ pub const SIGMA_GROUPS: usize = 5;
 /// (equal counts, by σ) has a scale at its median log σ; between medians the scale is linear in
 /// log σ (see [`BinScale::factor`] beyond them). Answers the map itself is surer of can be more or less
 /// overconfident than the rest, and one factor per bin cannot right both.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BinScale {
     /// Median ln σ of each group, ascending (equal when the bin has few residuals).
     pub(super) log_sd: [f64; SIGMA_GROUPS],
@@ -108,7 +109,7 @@ pub const DATA_BINS: usize = DATA_EDGES_M.len() + 1;
 /// ([`super::relief`]): the terrain's semivariogram for planner layers, and with `gp.unseen_relief`
 /// added to window answers' calibrated variance. Linear in ln d between
 /// the bins' centres, as d² below the first (no relief at a datum), the last bin's beyond.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Relief {
     /// Variance at each bin's centre, m².
     pub var_m2: [f64; DATA_BINS],
@@ -169,7 +170,7 @@ pub fn data_bin_of(data_m: f64) -> usize {
 
 /// Per (source, grazing class, range bin) σ scales, and for window answers the relief unseen
 /// between their data; what a snapshot applies to its answers.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct SigmaScales {
     /// Window answers.
     pub window: ScaleTable,
@@ -193,12 +194,46 @@ pub struct SigmaScales {
     pub correlation: ErrorCorrelation,
 }
 
+impl SigmaScales {
+    /// Whether every value is in its domain (a checkpoint's, before it is restored): scales
+    /// positive and finite with each bin's σ medians ascending, weights and variances finite and
+    /// not negative, a positive tail shape and correlation length; else what is not.
+    pub fn check(&self) -> Result<(), &'static str> {
+        let bin_ok = |b: &BinScale| {
+            b.scale.iter().all(|&s| s.is_finite() && s > 0.0)
+                && b.log_sd.iter().all(|&l| !l.is_nan() && l < f64::INFINITY)
+                && b.log_sd.windows(2).all(|w| w[0] <= w[1])
+        };
+        let tables = [&self.window, &self.aggregate];
+        if !tables
+            .iter()
+            .flat_map(|t| t.iter().flatten().flatten())
+            .all(bin_ok)
+        {
+            return Err("a σ scale is not positive and finite, or its σ medians are not ascending");
+        }
+        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
+        let weights = self.departure.iter().chain(&self.relief.var_m2);
+        if !(weights.copied().all(non_negative) && non_negative(self.view_disagreement)) {
+            return Err(
+                "a departure weight, relief variance or disagreement weight is negative or not finite",
+            );
+        }
+        let tails_ok = self.tails.dof > 0.0 && self.tails.scale.is_finite() && self.tails.scale > 0.0;
+        let length = self.correlation.length_m;
+        if !(tails_ok && length.is_finite() && length > 0.0) {
+            return Err("the tail shape or the error correlation length is not positive");
+        }
+        Ok(())
+    }
+}
+
 /// Correlation length of height errors before any is learnt, metres.
 pub const DEFAULT_ERROR_LENGTH_M: f64 = 0.5;
 
 /// The correlation of the maps' height errors between two answers a distance d apart: Matérn-3/2
 /// of length `length_m`, learnt by the calibrator (`map::correlation`).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ErrorCorrelation {
     /// Correlation length, metres.
     pub length_m: f64,
@@ -227,7 +262,7 @@ const TAIL_DOFS: [f64; 9] = [1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0];
 /// freedom, Gaussian when `dof` is infinite. Heavy tails make a calibrated σ too wide near the
 /// mean and too narrow far out: a Gaussian then overstates the probability of a limit a little
 /// beyond the mean and understates it far beyond (docs/ARCHITECTURE.md "Planner layers").
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TailShape {
     /// Degrees of freedom (infinite: Gaussian).
     pub dof: f64,

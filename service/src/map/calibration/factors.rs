@@ -7,13 +7,14 @@ use crate::map::scales::{
 };
 use std::collections::VecDeque;
 
-/// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes the scales of the
+/// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes `prior`'s (the
+/// scales restored from before a restart) if there is one; else the scales of the
 /// nearest range bin of its grazing class and level class that has them (the wider, between two
 /// as near); a class with none at all takes the nearest class's of its level, and a level with
 /// none at all the nearest level's. So an empty cell neither pulls its neighbours'
 /// interpolation toward 1 nor answers with the map's raw σ. Where the level is not told apart
 /// ([`split_by_level`]) every level holds level ground's scales.
-pub(super) fn table_of(residuals: &Residuals) -> ScaleTable {
+pub(super) fn table_of(residuals: &Residuals, prior: Option<&ScaleTable>) -> ScaleTable {
     let levels: Vec<Option<LevelScales>> = residuals.iter().map(class_table_of).collect();
     let width = |level: &LevelScales| level.iter().flatten().map(BinScale::width).sum::<f64>();
     let mut table: ScaleTable =
@@ -23,6 +24,18 @@ pub(super) fn table_of(residuals: &Residuals) -> ScaleTable {
         for (c, row) in scales.iter_mut().enumerate() {
             if !split_by_level(c) {
                 *row = level[c];
+            }
+        }
+    }
+    if let Some(prior) = prior {
+        for (l, scales) in table.iter_mut().enumerate() {
+            for (c, row) in scales.iter_mut().enumerate() {
+                let own = if split_by_level(c) { l } else { LEVEL };
+                for (b, scale) in row.iter_mut().enumerate() {
+                    if residuals[own][c][b].len() < MIN_RESIDUALS {
+                        *scale = prior[l][c][b];
+                    }
+                }
             }
         }
     }
@@ -39,8 +52,9 @@ pub const DEPARTURE_SAMPLE: usize = 2500;
 /// as a Gaussian's do, 68 % (their 95 % is what the scales aim at); of two as near, the
 /// smaller. The departure tells large errors from small ones near the sensor, and counts for
 /// less far out, where the data thin and every answer departs from them. A bin with too few
-/// residuals takes its nearest neighbour's; with none anywhere, 0.
-pub(super) fn departure_weights_of(residuals: &Residuals) -> [f64; BINS] {
+/// residuals takes `prior`'s weight (restored from before a restart) if there is one, else its
+/// nearest neighbour's; with none anywhere, 0.
+pub(super) fn departure_weights_of(residuals: &Residuals, prior: Option<&[f64; BINS]>) -> [f64; BINS] {
     let learnt: Vec<Option<f64>> = (0..BINS)
         .map(|b| {
             let pooled: Vec<Residual> = residuals
@@ -77,7 +91,10 @@ pub(super) fn departure_weights_of(residuals: &Residuals) -> [f64; BINS] {
             })
         })
         .collect();
-    std::array::from_fn(|b| nearest_filled(&learnt, b, |w| *w).unwrap_or(0.0))
+    std::array::from_fn(|b| match (learnt[b], prior) {
+        (None, Some(prior)) => prior[b],
+        _ => nearest_filled(&learnt, b, |w| *w).unwrap_or(0.0),
+    })
 }
 
 /// The share of a Gaussian within 1 σ of its mean.

@@ -97,6 +97,9 @@ pub struct Calibrator {
     correlation: CorrelationLearner,
     relief: ReliefLearner,
     scales: SigmaScales,
+    // Scales learnt before a restart: each part stands until it is relearnt
+    // ([`Self::with_prior`]).
+    prior: Option<SigmaScales>,
 }
 
 impl Calibrator {
@@ -115,6 +118,24 @@ impl Calibrator {
     /// The same calibrator with another weight on the maps' disagreement (`gp.view_disagreement`).
     pub fn with_view_disagreement(mut self, weight: f64) -> Self {
         self.scales.view_disagreement = weight;
+        self
+    }
+
+    /// Starts from `prior`, the scales learnt before a restart (a checkpoint's), keeping its
+    /// settings (`relief_in_heights`, `view_disagreement`): they are the scales at once, and each
+    /// part stands until the calibrator has relearnt it from its own residuals: a table cell
+    /// until it holds [`MIN_RESIDUALS`], a range bin's departure weight until its bin has enough
+    /// to choose one, the relief, the tail shape and the correlation until each has its minimum.
+    /// So a restarted daemon answers as calibrated as before it stopped, and no part returns to
+    /// the map's raw σ on the first scan's few residuals.
+    pub fn with_prior(mut self, prior: SigmaScales) -> Self {
+        let prior = SigmaScales {
+            relief_in_heights: self.scales.relief_in_heights,
+            view_disagreement: self.scales.view_disagreement,
+            ..prior
+        };
+        self.scales = prior;
+        self.prior = Some(prior);
         self
     }
 
@@ -140,7 +161,10 @@ impl Calibrator {
         };
         let relief_before = self.scales.relief;
         self.relief.observe(scan, map);
-        self.scales.relief = self.relief.relief();
+        self.scales.relief = match &self.prior {
+            Some(prior) if !self.relief.holds_enough() => prior.relief,
+            _ => self.relief.relief(),
+        };
         let in_heights = self.scales.relief_in_heights;
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
@@ -215,15 +239,16 @@ impl Calibrator {
         // Each range bin's weight on the departure is chosen first; the scales are fitted to
         // the variances it gives.
         let refit_window = touched[0] || (in_heights && relief != relief_before);
+        let prior = self.prior;
         if refit_window {
-            self.scales.departure = departure_weights_of(&self.window);
+            self.scales.departure = departure_weights_of(&self.window, prior.as_ref().map(|p| &p.departure));
         }
         let window = with_departure(&self.window, &self.scales.departure);
         if refit_window {
-            self.scales.window = table_of(&window);
+            self.scales.window = table_of(&window, prior.as_ref().map(|p| &p.window));
         }
         if touched[1] {
-            self.scales.aggregate = table_of(&self.aggregate);
+            self.scales.aggregate = table_of(&self.aggregate, prior.as_ref().map(|p| &p.aggregate));
         }
         if touched[0] || touched[1] {
             self.scales.tails = self.tails(&window);
@@ -231,7 +256,10 @@ impl Calibrator {
         if scan.sequence.is_multiple_of(PAIR_EVERY_SCANS) {
             let pairs = self.pairs(snapshot, scan, &sample);
             self.correlation.observe(&pairs);
-            self.scales.correlation = self.correlation.correlation();
+            self.scales.correlation = match &self.prior {
+                Some(prior) if !self.correlation.holds_enough() => prior.correlation,
+                _ => self.correlation.correlation(),
+            };
         }
         answered
     }
@@ -299,7 +327,8 @@ impl Calibrator {
 
     /// The shape of the calibrated errors: the shares of every held residual (both sources,
     /// weighted by area; `window` with the departure in its variances) within ±1 and ±1.96
-    /// calibrated σ, fitted by [`TailShape::fit`]; Gaussian until [`MIN_TAIL_RESIDUALS`] count.
+    /// calibrated σ, fitted by [`TailShape::fit`]; until [`MIN_TAIL_RESIDUALS`] count, the prior's
+    /// ([`Self::with_prior`]) or a Gaussian.
     /// Only residuals whose return noise variance is at most [`LATENT_SHARE`] of the calibrated
     /// latent variance count.
     fn tails(&self, window: &Residuals) -> TailShape {
@@ -332,7 +361,7 @@ impl Calibrator {
             }
         }
         if count < MIN_TAIL_RESIDUALS {
-            return TailShape::default();
+            return self.prior.map_or_else(TailShape::default, |p| p.tails);
         }
         TailShape::fit(inside[0] / total, inside[1] / total)
     }

@@ -179,7 +179,7 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
         .map(|i| r(0.002 * (1.0 + (i % 7) as f64 / 7.0)))
         .collect();
     residuals[LEVEL][CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
-    let table = table_of(&residuals);
+    let table = table_of(&residuals, None);
     let f = |c: usize, b: usize| table[LEVEL][c][b].factor(1e-3);
     assert_eq!(f(CLASSES - 1, 0), f(CLASSES - 1, 1), "bin 0 from bin 1");
     assert_eq!(f(CLASSES - 1, 6), f(CLASSES - 1, 4), "bin 6 from bin 4");
@@ -203,7 +203,7 @@ fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
     residuals[LEVEL][CLASSES - 1][4] = errors(0.01);
     residuals[0][CLASSES - 1][4] = errors(0.1);
     residuals[LEVEL][0][4] = errors(0.01);
-    let table = table_of(&residuals);
+    let table = table_of(&residuals, None);
     let f = |l: usize, c: usize| table[l][c][4].factor(1e-2);
     assert!(
         f(0, CLASSES - 1) > 5.0 * f(LEVEL, CLASSES - 1),
@@ -244,7 +244,7 @@ fn a_bin_whose_errors_follow_the_departure_from_the_data_weighs_it_and_one_whose
     residuals[LEVEL][CLASSES - 1][2] = departed(&|d| d.max(1e-3));
     // Range bin 5: the same departures, but every error of σ 1 mm.
     residuals[LEVEL][CLASSES - 1][5] = departed(&|_| 1e-3);
-    let weights = departure_weights_of(&residuals);
+    let weights = departure_weights_of(&residuals, None);
     assert!(weights[2] >= 0.25, "{weights:?}");
     assert_eq!(weights[5], 0.0, "{weights:?}");
     // Bins without residuals take their nearest neighbour's.
@@ -384,4 +384,73 @@ fn the_aggregate_is_tested_where_a_window_map_answers_too() {
         by_aggregate >= by_window / 2,
         "{by_aggregate} aggregate residuals against {by_window} of the window"
     );
+}
+
+#[test]
+fn a_restarted_calibrator_keeps_each_learnt_part_until_it_has_relearnt_it() {
+    let terrain = family_terrain("fbm-h05-16deg", 7, 40.0);
+    let preset = rangegp_sim::ScannerPreset::seed000();
+    let path = rangegp_sim::Path::wander(3, &terrain, 18, 0.5, 0.2);
+    let scan_at = |i: usize| {
+        let mut scan = scan_of(&terrain, path.pose(&terrain, i, preset.mount_height_m));
+        scan.sequence = i as u64 + 1;
+        let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        (scan, map)
+    };
+    let mut before = Calibrator::new(true);
+    let mut window = Window::new(16);
+    let mut snapshot = MapSnapshot::default();
+    for i in 0..12 {
+        let (scan, map) = scan_at(i);
+        before.observe(&snapshot, &scan, &map);
+        window.push(Arc::new(map));
+        snapshot = window.snapshot().with_scales(before.scales());
+    }
+    let prior = before.scales();
+    assert!(
+        before.correlation.holds_enough(),
+        "the premise: a correlation was learnt"
+    );
+    let mut restarted = Calibrator::new(true).with_prior(prior);
+    assert_eq!(
+        restarted.scales(),
+        prior,
+        "a restarted daemon answers with the scales it had"
+    );
+    // After the restart the window is empty: the first scan tests nothing, the next ones the
+    // maps since, and only some cells then hold enough residuals.
+    let mut fresh = Calibrator::new(true);
+    let mut window = Window::new(16);
+    let mut snapshot = MapSnapshot::default();
+    for i in 12..18 {
+        let (scan, map) = scan_at(i);
+        restarted.observe(&snapshot.clone().with_scales(restarted.scales()), &scan, &map);
+        fresh.observe(&snapshot.clone().with_scales(fresh.scales()), &scan, &map);
+        window.push(Arc::new(map));
+        snapshot = window.snapshot();
+    }
+    let (now, fresh_now) = (restarted.scales(), fresh.scales());
+    let (mut kept, mut relearnt, mut fresh_differs) = (0, 0, 0);
+    for l in 0..LEVELS {
+        for c in 0..CLASSES {
+            let own = if split_by_level(c) { l } else { LEVEL };
+            for b in 0..BINS {
+                if restarted.window[own][c][b].len() < MIN_RESIDUALS {
+                    assert_eq!(now.window[l][c][b], prior.window[l][c][b], "cell {l} {c} {b}");
+                    kept += 1;
+                    fresh_differs += usize::from(fresh_now.window[l][c][b] != prior.window[l][c][b]);
+                } else {
+                    relearnt += 1;
+                }
+            }
+        }
+    }
+    assert!(kept > 0 && relearnt > 0, "kept {kept}, relearnt {relearnt}");
+    assert!(
+        fresh_differs > 0,
+        "the premise: a calibrator without the prior fills those cells otherwise"
+    );
+    assert!(!restarted.correlation.holds_enough());
+    assert_eq!(now.correlation, prior.correlation);
+    assert_ne!(fresh_now.correlation, prior.correlation);
 }

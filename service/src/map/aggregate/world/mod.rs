@@ -12,7 +12,7 @@ mod answers;
 mod change;
 mod pages;
 mod seen_from;
-pub use seen_from::Seen;
+pub use seen_from::{Seen, SQUARE};
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
@@ -234,6 +234,10 @@ pub struct WorldState {
     /// Where the last scans' sensors stood, (x, y) in metres, oldest first (at most
     /// [`VIEWS_KEPT`]): how new the next scan's view is ([`INDEPENDENT_VIEW_M`]).
     pub views: Vec<[f64; 2]>,
+    /// How each cell that has a record was seen, sorted by index: the fusing sensors' distance
+    /// (metres) and their rays' grazing ([`WorldAggregate::seen_at`]), which key the aggregate's
+    /// σ factors.
+    pub seen: Vec<((i32, i32), [f32; 2])>,
 }
 
 /// The world-frame tiled elevation aggregate.
@@ -265,7 +269,7 @@ pub struct WorldAggregate {
     departure_weights: [f64; BINS],
     // How each fused cell was seen: its sensors' distance and their rays' grazing, fused by
     // inverse variance as its height (`seen_from`): what the aggregate's σ factors are keyed on.
-    // Not checkpointed: a cell restored, paged in, corrected or replaced has none until a scan
+    // Checkpointed; not paged: a cell paged in, corrected or replaced has none until a scan
     // fuses it again (answers there fall back to the distance from the newest sensor, seen
     // squarely).
     seen_from: HashMap<(i32, i32), seen_from::SeenFrom>,
@@ -308,6 +312,7 @@ impl WorldAggregate {
         agg.inserts = state.inserts;
         agg.history = state.history.into_iter().collect();
         agg.views = state.views.into_iter().collect();
+        agg.restore_seen_from(&state.seen);
         let all: BTreeSet<(i32, i32)> = agg.cells.keys().flat_map(|&c| agg.tiles_covering(c)).collect();
         agg.refit(all)?;
         Ok(agg)
@@ -323,6 +328,7 @@ impl WorldAggregate {
             inserts: self.inserts,
             history: self.history.iter().copied().collect(),
             views: self.views.iter().copied().collect(),
+            seen: self.seen_records(),
         }
     }
 

@@ -71,6 +71,31 @@ impl WorldAggregate {
         }
     }
 
+    /// Every cell's record as checkpointed ([`WorldState::seen`](super::WorldState::seen)):
+    /// (distance, grazing), sorted by index.
+    pub(super) fn seen_records(&self) -> Vec<((i32, i32), [f32; 2])> {
+        let mut records: Vec<_> = self
+            .seen_from
+            .iter()
+            .map(|(&c, s)| (c, [s.distance_m, s.grazing]))
+            .collect();
+        records.sort_by_key(|&(c, _)| c);
+        records
+    }
+
+    /// Takes checkpointed records back, for cells the aggregate holds; a record out of its
+    /// domain (not finite, a negative distance or grazing, a grazing over [`SQUARE`]) is
+    /// dropped: its cell answers as one without a record.
+    pub(super) fn restore_seen_from(&mut self, records: &[((i32, i32), [f32; 2])]) {
+        let square = SQUARE as f32;
+        for &(c, [distance_m, grazing]) in records {
+            let valid = distance_m.is_finite() && distance_m >= 0.0 && (0.0..=square).contains(&grazing);
+            if valid && self.cells.contains_key(&c) {
+                self.seen_from.insert(c, SeenFrom { distance_m, grazing });
+            }
+        }
+    }
+
     /// How the fusing scans saw map (x, y): bilinear between the neighbouring cells' centres, a
     /// cell without a record counting as seen squarely from `fallback_m` (so the answer is
     /// continuous in (x, y) wherever cells gain or lack one).

@@ -38,6 +38,7 @@ fn block() -> WorldAggregate {
         inserts: 1,
         history: Vec::new(),
         views: Vec::new(),
+        seen: Vec::new(),
     })
     .expect("refit")
 }
