@@ -20,7 +20,7 @@ use rangegp_service::daemon::Daemon;
 use rangegp_service::ingest::validate::{validate, ValidationLimits};
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::scales::SigmaScales;
-use rangegp_service::map::{query, LocalRangeMap, MapSnapshot};
+use rangegp_service::map::{calibration, query, LocalRangeMap, MapSnapshot};
 use rangegp_tests::child::{self, ChildProcess};
 use rangegp_tests::{env_count, ping_pong, unique_id, world, Harness, TempDir, WAIT};
 use rangegp_transport::{reserve_loopback_endpoint, ReservedEndpoint};
@@ -270,17 +270,14 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
 
         // Before any new scan: the restored aggregate answers exactly as the replay does, with
         // the σ scales the killed daemon had learnt (none before the first checkpoint).
-        let scales =
-            restored
-                .as_ref()
-                .and_then(|r| r.checkpoint.scales)
-                .map_or_else(SigmaScales::default, |s| SigmaScales {
-                    relief_in_heights: config.gp.unseen_relief,
-                    view_disagreement: config.gp.view_disagreement,
-                    ..s
-                });
+        let scales = restored
+            .as_ref()
+            .and_then(|r| r.checkpoint.scales)
+            .map_or_else(SigmaScales::default, |s| {
+                calibration::under_settings(s, config.gp.unseen_relief, config.gp.view_disagreement)
+            });
         ensure!(
-            restored.is_none() || scales.aggregate != SigmaScales::default().aggregate,
+            restored.is_none() || scales.learnt.aggregate.iter().flatten().flatten().any(|&l| l),
             "cycle {cycle}: the checkpoint kept no learnt σ scales"
         );
         let reference = MapSnapshot::new(
@@ -363,7 +360,7 @@ fn the_daemon_killed_under_load_restores_its_aggregate_each_time() -> Result<()>
         .max()
         .unwrap_or(0);
     eprintln!(
-        "largest checkpoint {largest} bytes for {} cells",
+        "largest checkpoint file {largest} bytes; the last restored aggregate held {} cells",
         replay.world.cells().len()
     );
     ensure!(lost_max <= 1.0, "lost {lost_max:.2} s of scans in one kill");

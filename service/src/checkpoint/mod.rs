@@ -143,10 +143,20 @@ impl Checkpoint {
                 "a cell's seen-from distance or grazing is out of its domain",
             ));
         }
-        if let Some(scales) = &self.scales {
-            scales.check().map_err(RestoreError::Invalid)?;
-        }
         Ok(WorldAggregate::from_state(w.clone())?)
+    }
+
+    /// Drops σ scales that are not ones a calibrator could have learnt
+    /// ([`calibration::check`](crate::map::calibration::check)), logging why: the map is kept
+    /// and the scales are relearnt from the next scans.
+    pub fn drop_invalid_scales(&mut self) {
+        if let Some(Err(reason)) = self.scales.as_ref().map(crate::map::calibration::check) {
+            tracing::warn!(
+                reason,
+                "checkpointed σ scales dropped; they are relearnt from the next scans"
+            );
+            self.scales = None;
+        }
     }
 }
 
@@ -454,19 +464,19 @@ pub(crate) mod tests {
                 "{bad:?}"
             );
         }
-        let damaged: [&dyn Fn(&mut SigmaScales); 4] = [
-            &|s| s.correlation.length_m = 0.0,
-            &|s| s.tails.scale = f64::NAN,
-            &|s| s.departure[3] = -0.25,
-            &|s| s.relief.var_m2[0] = f64::INFINITY,
-        ];
-        for damage in damaged {
-            let mut c = sample();
-            if let Some(scales) = c.scales.as_mut() {
-                damage(scales);
-            }
-            assert!(matches!(c.restore(&params), Err(RestoreError::Invalid(_))));
-        }
+        // Scales out of their domain are dropped; the map is kept.
+        let mut c = sample();
+        c.scales
+            .as_mut()
+            .expect("the sample has scales")
+            .correlation
+            .length_m = 0.0;
+        assert!(c.restore(&params).is_ok());
+        c.drop_invalid_scales();
+        assert_eq!(c.scales, None);
+        let mut c = sample();
+        c.drop_invalid_scales();
+        assert_eq!(c.scales, sample().scales, "valid scales are kept");
         assert!(sample().restore(&params).is_ok());
         let other = WorldParams {
             cell_m: 0.5,

@@ -6,7 +6,8 @@
 //! per tile, whatever the distance driven).
 
 use super::format::{decode_framed, encode_framed, FormatError};
-use crate::map::aggregate::world::TilePage;
+use crate::map::aggregate::world::{Cell, TilePage};
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 use std::fs::{self, File};
 use std::io::Write;
@@ -16,8 +17,37 @@ use thiserror::Error;
 /// First bytes of every tile page.
 pub const PAGE_MAGIC: [u8; 8] = *b"RGPTILE\0";
 /// Layout version of a tile page; bumped when [`TilePage`] changes (apart from checkpoints',
-/// so that a checkpoint change leaves the pages of the site map on disk readable).
-pub const PAGE_FORMAT_VERSION: u32 = 3;
+/// so that a checkpoint change leaves the pages of the site map on disk readable; 4: how the
+/// cells were seen). Format-3 pages are read too ([`decode_page`]).
+pub const PAGE_FORMAT_VERSION: u32 = 4;
+/// The page layout before the cells' seen-from records.
+const PAGE_FORMAT_3: u32 = 3;
+
+/// A format-3 [`TilePage`]: the same without `seen`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct TilePageV3 {
+    key: (i32, i32),
+    cells: Vec<((i32, i32), Cell)>,
+    points: Vec<[f64; 3]>,
+    noise_var: Vec<f64>,
+}
+
+/// Decodes a page of this map, format 4 or 3 (a format-3 page's cells have no seen-from
+/// records: they answer as seen squarely from the newest sensor until scans fuse them again).
+fn decode_page(bytes: &[u8], identity: u64) -> Result<TilePage, FormatError> {
+    match decode_framed(PAGE_MAGIC, PAGE_FORMAT_VERSION, bytes, identity) {
+        Err(FormatError::Version {
+            found: PAGE_FORMAT_3, ..
+        }) => decode_framed::<TilePageV3>(PAGE_MAGIC, PAGE_FORMAT_3, bytes, identity).map(|p| TilePage {
+            key: p.key,
+            cells: p.cells,
+            points: p.points,
+            noise_var: p.noise_var,
+            seen: Vec::new(),
+        }),
+        decoded => decoded,
+    }
+}
 const SUFFIX: &str = ".page";
 
 /// A tile page could not be written or read.
@@ -182,8 +212,7 @@ impl PageReader {
             path: path.clone(),
             source,
         })?;
-        decode_framed(PAGE_MAGIC, PAGE_FORMAT_VERSION, &bytes, self.identity)
-            .map_err(|source| PageError::Format { path, source })
+        decode_page(&bytes, self.identity).map_err(|source| PageError::Format { path, source })
     }
 }
 
@@ -219,7 +248,42 @@ mod tests {
             )],
             points: vec![[1.0, 2.0, 0.5]],
             noise_var: vec![1e-4],
+            seen: vec![((key.0 * 10, key.1 * 10), [4.5, 0.75])],
         }
+    }
+
+    #[test]
+    fn a_format_3_page_is_read_without_seen_from_records() {
+        let dir = std::env::temp_dir().join(format!("rangegp-pages3-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        let store = PageStore::open(&dir, 7).expect("open");
+        let new = page((2, -1));
+        let old = TilePageV3 {
+            key: new.key,
+            cells: new.cells.clone(),
+            points: new.points.clone(),
+            noise_var: new.noise_var.clone(),
+        };
+        let bytes = encode_framed(PAGE_MAGIC, PAGE_FORMAT_3, &old, 7).expect("encode");
+        fs::write(store.path(new.key), bytes).expect("write");
+        let read = store.read(new.key).expect("a format-3 page decodes");
+        assert_eq!(
+            read,
+            TilePage {
+                seen: Vec::new(),
+                ..new
+            }
+        );
+        let other = encode_framed(PAGE_MAGIC, 2, &old, 7).expect("encode");
+        fs::write(store.path((2, -1)), other).expect("write");
+        assert!(matches!(
+            store.read((2, -1)),
+            Err(PageError::Format {
+                source: FormatError::Version { found: 2, .. },
+                ..
+            })
+        ));
+        fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

@@ -271,7 +271,10 @@ impl Store {
             let loaded = fs::read(&path)
                 .map_err(|e| RestoreError::Unreadable(e.kind()))
                 .and_then(|bytes| Ok(decode(&bytes, identity)?))
-                .and_then(|checkpoint| Ok((checkpoint.restore(params)?, checkpoint)));
+                .and_then(|mut checkpoint| {
+                    checkpoint.drop_invalid_scales();
+                    Ok((checkpoint.restore(params)?, checkpoint))
+                });
             match loaded {
                 Ok((world, checkpoint)) => {
                     let restored = Restored {

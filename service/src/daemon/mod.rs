@@ -20,7 +20,7 @@ use crate::ingest::subscriber::IngestSettings;
 use crate::ingest::{spawn_ingest, IngestError, IngestHandle, LatestQueue};
 use crate::map::aggregate::ledger::Ledger;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
-use crate::map::scales::SigmaScales;
+use crate::map::calibration;
 use crate::map::{LocalRangeMap, MapSnapshot};
 use crate::metrics::Metrics;
 use crate::scan::ScanInput;
@@ -138,11 +138,7 @@ impl DaemonBuilder {
             .as_ref()
             .filter(|_| config.gp.prequential_calibration)
             .and_then(|r| r.checkpoint.scales)
-            .map(|s| SigmaScales {
-                relief_in_heights: config.gp.unseen_relief,
-                view_disagreement: config.gp.view_disagreement,
-                ..s
-            });
+            .map(|s| calibration::under_settings(s, config.gp.unseen_relief, config.gp.view_disagreement));
         let world = restored.map(|r| Arc::new(r.world));
         let kernel = Arc::new(ArcSwap::from_pointee(params.kernel));
         let state = Arc::new(DaemonState {

@@ -449,12 +449,14 @@ mod tests {
             )],
             points: Vec::new(),
             noise_var: Vec::new(),
+            seen: Vec::new(),
         };
         let emptied = TilePage {
             key: (3, 0),
             cells: Vec::new(),
             points: Vec::new(),
             noise_var: Vec::new(),
+            seen: Vec::new(),
         };
         // Tiles (1, 0) and (3, 0) left the radius: the map holds only (0, 0) now.
         let left = world_with(&[((1, 1), 0.5)]);
@@ -496,6 +498,7 @@ mod tests {
             )],
             points: Vec::new(),
             noise_var: Vec::new(),
+            seen: Vec::new(),
         }
     }
 

@@ -90,22 +90,22 @@ impl CorrelationLearner {
         }
     }
 
-    /// Whether [`MIN_PAIRS`] are held: whether [`Self::correlation`] is learnt from them.
-    pub fn holds_enough(&self) -> bool {
-        self.pairs.len() >= MIN_PAIRS
-    }
-
     /// The correlation the pairs give: the default until [`MIN_PAIRS`] are held (or while
     /// the noise leaves no error variance to correlate), then the Matérn-3/2 length whose mean
     /// correlation at the pairs' separations equals the estimated ρ (clamped to
     /// [`LENGTH_BOUNDS_M`]).
     pub fn correlation(&self) -> ErrorCorrelation {
+        self.learnt().unwrap_or_default()
+    }
+
+    /// [`Self::correlation`] where it is learnt from the pairs; `None` where it is the default.
+    pub fn learnt(&self) -> Option<ErrorCorrelation> {
         let [v1, v2] = self
             .pairs
             .iter()
             .fold([0.0; 2], |[a, b], p| [a + p.square[0], b + p.square[1]]);
         if self.pairs.len() < MIN_PAIRS || v1 <= 0.0 || v2 <= 0.0 {
-            return ErrorCorrelation::default();
+            return None;
         }
         let rho = (self.pairs.iter().map(|p| p.cross).sum::<f64>() / (v1 * v2).sqrt()).clamp(0.0, 1.0);
         let n = self.pairs.len() as f64;
@@ -122,9 +122,9 @@ impl CorrelationLearner {
                 hi = mid;
             }
         }
-        ErrorCorrelation {
+        Some(ErrorCorrelation {
             length_m: (0.5 * (lo + hi)).exp(),
-        }
+        })
     }
 }
 

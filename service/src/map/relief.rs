@@ -78,15 +78,18 @@ impl ReliefLearner {
         }
     }
 
-    /// Whether any bin holds [`MIN_DEPARTURES`]: whether [`Self::relief`] is learnt from them.
-    pub fn holds_enough(&self) -> bool {
-        self.bins.iter().any(|q| q.len() >= MIN_DEPARTURES)
-    }
-
     /// The relief variance by distance bin: each bin's mean square departure less its noise,
     /// never less than a nearer bin's (a bin short of [`MIN_DEPARTURES`] takes the nearer one's).
     pub fn relief(&self) -> Relief {
+        self.relief_with(None).0
+    }
+
+    /// [`Self::relief`], where a bin short of [`MIN_DEPARTURES`] that `prior` learnt (restored
+    /// from before a restart, with its flags) counts the prior's variance as its own; and which
+    /// bins are learnt.
+    pub fn relief_with(&self, prior: Option<(&Relief, &[bool; DATA_BINS])>) -> (Relief, [bool; DATA_BINS]) {
         let mut var_m2 = [0.0; DATA_BINS];
+        let mut learnt = [false; DATA_BINS];
         let mut floor = 0.0f64;
         for (k, q) in self.bins.iter().enumerate() {
             if q.len() >= MIN_DEPARTURES {
@@ -94,10 +97,14 @@ impl ReliefLearner {
                 let square = q.iter().map(|d| d.square).sum::<f64>() / n;
                 let noise = q.iter().map(|d| d.noise_var).sum::<f64>() / n;
                 floor = floor.max(square - noise);
+                learnt[k] = true;
+            } else if let Some((relief, flags)) = prior.filter(|(_, flags)| flags[k]) {
+                floor = floor.max(relief.var_m2[k]);
+                learnt[k] = flags[k];
             }
             var_m2[k] = floor;
         }
-        Relief { var_m2 }
+        (Relief { var_m2 }, learnt)
     }
 }
 
@@ -144,6 +151,21 @@ mod tests {
     use crate::map::test_support::{family_terrain, params, scan_at_centre, scan_of};
     use crate::map::LocalRangeMap;
     use nalgebra::Isometry3;
+
+    #[test]
+    fn bins_short_of_departures_keep_the_priors_learnt_relief_and_fill_the_rest() {
+        let prior = Relief {
+            var_m2: [0.0, 1e-4, 9.0, 4e-4, 0.5, 0.5, 0.5, 0.5],
+        };
+        let mut flags = [false; DATA_BINS];
+        flags[1] = true;
+        flags[3] = true;
+        let (relief, learnt) = ReliefLearner::default().relief_with(Some((&prior, &flags)));
+        assert_eq!(relief.var_m2, [0.0, 1e-4, 1e-4, 4e-4, 4e-4, 4e-4, 4e-4, 4e-4]);
+        assert_eq!(learnt, flags);
+        let (none, nothing) = ReliefLearner::default().relief_with(None);
+        assert_eq!((none, nothing), (Relief::default(), [false; DATA_BINS]));
+    }
 
     /// The relief learnt from one scan of `terrain` (a family terrain by name).
     fn relief_on(terrain: &str) -> Relief {

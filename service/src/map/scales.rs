@@ -2,6 +2,7 @@
 //! class, grazing class, range bin), each a function of the answer's own σ, interpolated so that
 //! σ never jumps. [`super::calibration`] learns them; queries and the snapshot only read them.
 
+use super::calibration::SCALE_BOUNDS;
 use super::local::HeightEstimate;
 use rangegp_proto::msg::Source;
 use serde::{Deserialize, Serialize};
@@ -38,6 +39,16 @@ impl Default for BinScale {
 }
 
 impl BinScale {
+    /// Whether it could have been learnt (a checkpoint's, before it is restored): every scale
+    /// within [`SCALE_BOUNDS`], the σ medians all −∞ (one group) or all finite, ascending.
+    pub fn in_domain(&self) -> bool {
+        let (lo, hi) = SCALE_BOUNDS;
+        let l = &self.log_sd;
+        self.scale.iter().all(|&s| (lo..=hi).contains(&s))
+            && (l.iter().all(|&v| v == f64::NEG_INFINITY) || l.iter().all(|v| v.is_finite()))
+            && l.windows(2).all(|w| w[0] <= w[1])
+    }
+
     /// How wide these scales make σ (the factor at σ = 1 mm), to choose between two equally
     /// near fills of an empty cell.
     pub(super) fn width(&self) -> f64 {
@@ -192,40 +203,30 @@ pub struct SigmaScales {
     pub tails: TailShape,
     /// How the height errors of nearby answers correlate (slope σ from height σ).
     pub correlation: ErrorCorrelation,
+    /// Which of these the calibrator learnt from residuals (what a restarted daemon keeps).
+    pub learnt: Learnt,
 }
 
-impl SigmaScales {
-    /// Whether every value is in its domain (a checkpoint's, before it is restored): scales
-    /// positive and finite with each bin's σ medians ascending, weights and variances finite and
-    /// not negative, a positive tail shape and correlation length; else what is not.
-    pub fn check(&self) -> Result<(), &'static str> {
-        let bin_ok = |b: &BinScale| {
-            b.scale.iter().all(|&s| s.is_finite() && s > 0.0)
-                && b.log_sd.iter().all(|&l| !l.is_nan() && l < f64::INFINITY)
-                && b.log_sd.windows(2).all(|w| w[0] <= w[1])
-        };
-        let tables = [&self.window, &self.aggregate];
-        if !tables
-            .iter()
-            .flat_map(|t| t.iter().flatten().flatten())
-            .all(bin_ok)
-        {
-            return Err("a σ scale is not positive and finite, or its σ medians are not ascending");
-        }
-        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
-        let weights = self.departure.iter().chain(&self.relief.var_m2);
-        if !(weights.copied().all(non_negative) && non_negative(self.view_disagreement)) {
-            return Err(
-                "a departure weight, relief variance or disagreement weight is negative or not finite",
-            );
-        }
-        let tails_ok = self.tails.dof > 0.0 && self.tails.scale.is_finite() && self.tails.scale > 0.0;
-        let length = self.correlation.length_m;
-        if !(tails_ok && length.is_finite() && length > 0.0) {
-            return Err("the tail shape or the error correlation length is not positive");
-        }
-        Ok(())
-    }
+/// Table cells' flags, by level class, grazing class and range bin.
+pub type CellFlags = [[[bool; BINS]; CLASSES]; LEVELS];
+
+/// Which parts of [`SigmaScales`] the calibrator learnt from residuals, as against filled from a
+/// neighbour or left at the default: what a restarted calibrator keeps of a checkpoint's scales
+/// (`calibration::Calibrator::with_prior`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Learnt {
+    /// Window table cells.
+    pub window: CellFlags,
+    /// Aggregate table cells.
+    pub aggregate: CellFlags,
+    /// Departure weights, by range bin.
+    pub departure: [bool; BINS],
+    /// Relief variances, by data-distance bin.
+    pub relief: [bool; DATA_BINS],
+    /// The tail shape.
+    pub tails: bool,
+    /// The error correlation.
+    pub correlation: bool,
 }
 
 /// Correlation length of height errors before any is learnt, metres.
@@ -280,6 +281,12 @@ impl Default for TailShape {
 }
 
 impl TailShape {
+    /// Whether [`Self::fit`] could have given it (a checkpoint's, before it is restored).
+    pub fn in_domain(&self) -> bool {
+        let dof_ok = self.dof == f64::INFINITY || TAIL_DOFS.contains(&self.dof);
+        dof_ok && self.scale.is_finite() && self.scale > 0.0
+    }
+
     /// The shape whose central intervals of ±1 σ and ±1.96 σ hold `cov68` and `cov95` of the
     /// errors (as measured): for each candidate degree of freedom the scale that gives `cov68`,
     /// then the candidate whose ±1.96 σ share is nearest `cov95`. Gaussian when the shares are not

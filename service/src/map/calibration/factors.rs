@@ -3,43 +3,59 @@
 
 use super::{Residual, Residuals, MIN_RESIDUALS, SCALE_BOUNDS};
 use crate::map::scales::{
-    split_by_level, BinScale, ScaleTable, BINS, CLASSES, DEPARTURE_WEIGHTS, LEVEL, SIGMA_GROUPS,
+    split_by_level, BinScale, CellFlags, ScaleTable, BINS, CLASSES, DEPARTURE_WEIGHTS, LEVEL, LEVELS,
+    SIGMA_GROUPS,
 };
 use std::collections::VecDeque;
 
-/// The scales of one source. A cell with fewer than [`MIN_RESIDUALS`] takes `prior`'s (the
-/// scales restored from before a restart) if there is one; else the scales of the
-/// nearest range bin of its grazing class and level class that has them (the wider, between two
+/// The scales of one source, and which cells were learnt. A cell with [`MIN_RESIDUALS`] is
+/// learnt from them; one with fewer that `prior` learnt (the scales restored from before a
+/// restart, with their flags) keeps the prior's, as learnt. Any other cell takes the scales of
+/// the nearest learnt range bin of its grazing class and level class (the wider, between two
 /// as near); a class with none at all takes the nearest class's of its level, and a level with
 /// none at all the nearest level's. So an empty cell neither pulls its neighbours'
 /// interpolation toward 1 nor answers with the map's raw σ. Where the level is not told apart
 /// ([`split_by_level`]) every level holds level ground's scales.
-pub(super) fn table_of(residuals: &Residuals, prior: Option<&ScaleTable>) -> ScaleTable {
-    let levels: Vec<Option<LevelScales>> = residuals.iter().map(class_table_of).collect();
+pub(super) fn table_of(
+    residuals: &Residuals,
+    prior: Option<(&ScaleTable, &CellFlags)>,
+) -> (ScaleTable, CellFlags) {
+    let mut learnt: CellFlags = std::array::from_fn(|l| {
+        std::array::from_fn(|c| {
+            std::array::from_fn(|b| {
+                residuals[l][c][b].len() >= MIN_RESIDUALS || prior.is_some_and(|(_, flags)| flags[l][c][b])
+            })
+        })
+    });
+    let cell = |l: usize, c: usize, b: usize| {
+        let own = &residuals[l][c][b];
+        if own.len() >= MIN_RESIDUALS {
+            Some(bin_scale_of(own))
+        } else {
+            prior.filter(|_| learnt[l][c][b]).map(|(table, _)| table[l][c][b])
+        }
+    };
+    let levels: Vec<Option<LevelScales>> = (0..LEVELS)
+        .map(|l| {
+            let rows: Vec<Option<[BinScale; BINS]>> = (0..CLASSES)
+                .map(|c| row_of(&(0..BINS).map(|b| cell(l, c, b)).collect::<Vec<_>>()))
+                .collect();
+            filled_classes(&rows)
+        })
+        .collect();
     let width = |level: &LevelScales| level.iter().flatten().map(BinScale::width).sum::<f64>();
     let mut table: ScaleTable =
         std::array::from_fn(|l| nearest_filled(&levels, l, width).unwrap_or_default());
-    let level = table[LEVEL];
-    for scales in &mut table {
-        for (c, row) in scales.iter_mut().enumerate() {
+    let (level, level_learnt) = (table[LEVEL], learnt[LEVEL]);
+    for (scales, flags) in table.iter_mut().zip(learnt.iter_mut()) {
+        for c in 0..CLASSES {
             if !split_by_level(c) {
-                *row = level[c];
+                scales[c] = level[c];
+                flags[c] = level_learnt[c];
             }
         }
     }
-    if let Some(prior) = prior {
-        for (l, scales) in table.iter_mut().enumerate() {
-            for (c, row) in scales.iter_mut().enumerate() {
-                let own = if split_by_level(c) { l } else { LEVEL };
-                for (b, scale) in row.iter_mut().enumerate() {
-                    if residuals[own][c][b].len() < MIN_RESIDUALS {
-                        *scale = prior[l][c][b];
-                    }
-                }
-            }
-        }
-    }
-    table
+    (table, learnt)
 }
 
 /// Residuals of one range bin (all level and grazing classes) weighed for its departure weight,
@@ -52,9 +68,13 @@ pub const DEPARTURE_SAMPLE: usize = 2500;
 /// as a Gaussian's do, 68 % (their 95 % is what the scales aim at); of two as near, the
 /// smaller. The departure tells large errors from small ones near the sensor, and counts for
 /// less far out, where the data thin and every answer departs from them. A bin with too few
-/// residuals takes `prior`'s weight (restored from before a restart) if there is one, else its
-/// nearest neighbour's; with none anywhere, 0.
-pub(super) fn departure_weights_of(residuals: &Residuals, prior: Option<&[f64; BINS]>) -> [f64; BINS] {
+/// residuals keeps `prior`'s weight where the prior learnt one (restored from before a restart,
+/// with its flags); else it takes its nearest learnt neighbour's; with none anywhere, 0. Also
+/// returns which bins are learnt.
+pub(super) fn departure_weights_of(
+    residuals: &Residuals,
+    prior: Option<(&[f64; BINS], &[bool; BINS])>,
+) -> ([f64; BINS], [bool; BINS]) {
     let learnt: Vec<Option<f64>> = (0..BINS)
         .map(|b| {
             let pooled: Vec<Residual> = residuals
@@ -91,10 +111,15 @@ pub(super) fn departure_weights_of(residuals: &Residuals, prior: Option<&[f64; B
             })
         })
         .collect();
-    std::array::from_fn(|b| match (learnt[b], prior) {
-        (None, Some(prior)) => prior[b],
-        _ => nearest_filled(&learnt, b, |w| *w).unwrap_or(0.0),
-    })
+    let learnt: Vec<Option<f64>> = learnt
+        .into_iter()
+        .enumerate()
+        .map(|(b, own)| own.or(prior.filter(|(_, flags)| flags[b]).map(|(weights, _)| weights[b])))
+        .collect();
+    (
+        std::array::from_fn(|b| nearest_filled(&learnt, b, |w| *w).unwrap_or(0.0)),
+        std::array::from_fn(|b| learnt[b].is_some()),
+    )
 }
 
 /// The share of a Gaussian within 1 σ of its mean.
@@ -117,27 +142,22 @@ pub(super) fn with_departure(residuals: &Residuals, weights: &[f64; BINS]) -> Re
 /// Scales by grazing class and range bin.
 type LevelScales = [[BinScale; BINS]; CLASSES];
 
-/// Scales of residuals by grazing class and range bin, gaps filled from the nearest grazing
-/// class; `None` when no cell has [`MIN_RESIDUALS`].
-fn class_table_of(classes: &[[VecDeque<Residual>; BINS]; CLASSES]) -> Option<LevelScales> {
-    let rows: Vec<Option<[BinScale; BINS]>> = classes.iter().map(row_of).collect();
+/// One level's rows by grazing class, gaps filled from the nearest grazing class; `None` when
+/// no row has a learnt cell.
+fn filled_classes(rows: &[Option<[BinScale; BINS]>]) -> Option<LevelScales> {
     let width = |row: &[BinScale; BINS]| row.iter().map(BinScale::width).sum::<f64>();
     rows.iter()
         .any(Option::is_some)
-        .then(|| std::array::from_fn(|c| nearest_filled(&rows, c, width).unwrap_or_default()))
+        .then(|| std::array::from_fn(|c| nearest_filled(rows, c, width).unwrap_or_default()))
 }
 
-/// One grazing class's scales by range bin, gaps filled from the nearest bin; `None` when no
-/// bin has [`MIN_RESIDUALS`].
-fn row_of(bins: &[VecDeque<Residual>; BINS]) -> Option<[BinScale; BINS]> {
-    let learnt: Vec<Option<BinScale>> = bins
-        .iter()
-        .map(|b| (b.len() >= MIN_RESIDUALS).then(|| bin_scale_of(b)))
-        .collect();
+/// One grazing class's scales by range bin from its learnt cells, gaps filled from the nearest
+/// bin; `None` when no bin is learnt.
+fn row_of(learnt: &[Option<BinScale>]) -> Option<[BinScale; BINS]> {
     learnt
         .iter()
         .any(Option::is_some)
-        .then(|| std::array::from_fn(|k| nearest_filled(&learnt, k, BinScale::width).unwrap_or_default()))
+        .then(|| std::array::from_fn(|k| nearest_filled(learnt, k, BinScale::width).unwrap_or_default()))
 }
 
 /// `items[k]` if present, else the nearest present one (of two as near, the one `width` calls

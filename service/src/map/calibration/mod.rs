@@ -37,7 +37,10 @@ use rangegp_proto::msg::Source;
 use std::collections::{HashMap, VecDeque};
 
 mod factors;
+mod prior;
 mod sample;
+
+pub use prior::{check, under_settings};
 
 use factors::{departure_weights_of, table_of, with_departure};
 use sample::stratified_sample;
@@ -121,19 +124,22 @@ impl Calibrator {
         self
     }
 
-    /// Starts from `prior`, the scales learnt before a restart (a checkpoint's), keeping its
-    /// settings (`relief_in_heights`, `view_disagreement`): they are the scales at once, and each
-    /// part stands until the calibrator has relearnt it from its own residuals: a table cell
-    /// until it holds [`MIN_RESIDUALS`], a range bin's departure weight until its bin has enough
-    /// to choose one, the relief, the tail shape and the correlation until each has its minimum.
-    /// So a restarted daemon answers as calibrated as before it stopped, and no part returns to
-    /// the map's raw σ on the first scan's few residuals.
+    /// Starts from `prior`, the scales learnt before a restart (a checkpoint's), as this
+    /// calibrator's settings take them ([`under_settings`]): they are the scales at once, and
+    /// each part the prior learnt counts as learnt until the calibrator has relearnt it from its
+    /// own residuals: a table cell until it holds [`MIN_RESIDUALS`], a range bin's departure
+    /// weight until its bin has enough to choose one, a relief bin, the tail shape and the
+    /// correlation until each has its minimum. Parts the prior had filled from a neighbour are
+    /// filled again from what is learnt now. A window cell's prior stands only while its range
+    /// bin's departure weight is the prior's (its factor was fitted on variances that weight
+    /// made). So a restarted daemon answers as calibrated as before it stopped, and no part
+    /// returns to the map's raw σ on the first scans' few residuals.
     pub fn with_prior(mut self, prior: SigmaScales) -> Self {
-        let prior = SigmaScales {
-            relief_in_heights: self.scales.relief_in_heights,
-            view_disagreement: self.scales.view_disagreement,
-            ..prior
-        };
+        let prior = under_settings(
+            prior,
+            self.scales.relief_in_heights,
+            self.scales.view_disagreement,
+        );
         self.scales = prior;
         self.prior = Some(prior);
         self
@@ -161,10 +167,10 @@ impl Calibrator {
         };
         let relief_before = self.scales.relief;
         self.relief.observe(scan, map);
-        self.scales.relief = match &self.prior {
-            Some(prior) if !self.relief.holds_enough() => prior.relief,
-            _ => self.relief.relief(),
-        };
+        let prior = self.prior;
+        (self.scales.relief, self.scales.learnt.relief) = self
+            .relief
+            .relief_with(prior.as_ref().map(|p| (&p.relief, &p.learnt.relief)));
         let in_heights = self.scales.relief_in_heights;
         let reference = newest.sensor_position();
         let sample = stratified_sample(scan, map, &reference);
@@ -239,27 +245,43 @@ impl Calibrator {
         // Each range bin's weight on the departure is chosen first; the scales are fitted to
         // the variances it gives.
         let refit_window = touched[0] || (in_heights && relief != relief_before);
-        let prior = self.prior;
         if refit_window {
-            self.scales.departure = departure_weights_of(&self.window, prior.as_ref().map(|p| &p.departure));
+            (self.scales.departure, self.scales.learnt.departure) = departure_weights_of(
+                &self.window,
+                prior.as_ref().map(|p| (&p.departure, &p.learnt.departure)),
+            );
         }
         let window = with_departure(&self.window, &self.scales.departure);
         if refit_window {
-            self.scales.window = table_of(&window, prior.as_ref().map(|p| &p.window));
+            let departure = self.scales.departure;
+            let window_prior = prior.map(|p| {
+                let mut flags = p.learnt.window;
+                for (b, &weight) in departure.iter().enumerate() {
+                    if weight != p.departure[b] {
+                        flags.iter_mut().flatten().for_each(|row| row[b] = false);
+                    }
+                }
+                (p.window, flags)
+            });
+            (self.scales.window, self.scales.learnt.window) =
+                table_of(&window, window_prior.as_ref().map(|(t, f)| (t, f)));
         }
         if touched[1] {
-            self.scales.aggregate = table_of(&self.aggregate, prior.as_ref().map(|p| &p.aggregate));
+            (self.scales.aggregate, self.scales.learnt.aggregate) = table_of(
+                &self.aggregate,
+                prior.as_ref().map(|p| (&p.aggregate, &p.learnt.aggregate)),
+            );
         }
         if touched[0] || touched[1] {
-            self.scales.tails = self.tails(&window);
+            (self.scales.tails, self.scales.learnt.tails) = self.tails(&window);
         }
         if scan.sequence.is_multiple_of(PAIR_EVERY_SCANS) {
             let pairs = self.pairs(snapshot, scan, &sample);
             self.correlation.observe(&pairs);
-            self.scales.correlation = match &self.prior {
-                Some(prior) if !self.correlation.holds_enough() => prior.correlation,
-                _ => self.correlation.correlation(),
-            };
+            let prior = prior.filter(|p| p.learnt.correlation).map(|p| p.correlation);
+            let learnt = self.correlation.learnt().or(prior);
+            self.scales.correlation = learnt.unwrap_or_default();
+            self.scales.learnt.correlation = learnt.is_some();
         }
         answered
     }
@@ -331,7 +353,7 @@ impl Calibrator {
     /// ([`Self::with_prior`]) or a Gaussian.
     /// Only residuals whose return noise variance is at most [`LATENT_SHARE`] of the calibrated
     /// latent variance count.
-    fn tails(&self, window: &Residuals) -> TailShape {
+    fn tails(&self, window: &Residuals) -> (TailShape, bool) {
         fn scaled<'a>(
             residuals: &'a Residuals,
             table: &'a ScaleTable,
@@ -361,9 +383,12 @@ impl Calibrator {
             }
         }
         if count < MIN_TAIL_RESIDUALS {
-            return self.prior.map_or_else(TailShape::default, |p| p.tails);
+            return match self.prior.filter(|p| p.learnt.tails) {
+                Some(p) => (p.tails, true),
+                None => (TailShape::default(), false),
+            };
         }
-        TailShape::fit(inside[0] / total, inside[1] / total)
+        (TailShape::fit(inside[0] / total, inside[1] / total), true)
     }
 }
 

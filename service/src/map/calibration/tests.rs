@@ -3,6 +3,7 @@ use super::sample::coprime_stride;
 use super::*;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
+use crate::map::scales::{BinScale, SIGMA_GROUPS};
 use crate::map::test_support::{family_terrain, params, scan_of};
 use crate::map::Window;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
@@ -179,7 +180,7 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
         .map(|i| r(0.002 * (1.0 + (i % 7) as f64 / 7.0)))
         .collect();
     residuals[LEVEL][CLASSES - 1][4] = (0..200).map(|i| r(0.02 * (1.0 + (i % 7) as f64 / 7.0))).collect();
-    let table = table_of(&residuals, None);
+    let table = table_of(&residuals, None).0;
     let f = |c: usize, b: usize| table[LEVEL][c][b].factor(1e-3);
     assert_eq!(f(CLASSES - 1, 0), f(CLASSES - 1, 1), "bin 0 from bin 1");
     assert_eq!(f(CLASSES - 1, 6), f(CLASSES - 1, 4), "bin 6 from bin 4");
@@ -194,6 +195,48 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
 }
 
 #[test]
+fn a_cell_the_prior_learnt_keeps_its_scales_one_it_filled_is_filled_again() {
+    let mut residuals = Residuals::default();
+    let last = CLASSES - 1;
+    // Now: range bin 3 learns errors of 2 mm against answers of 1 mm (a scale of about 2).
+    residuals[LEVEL][last][3] = (0..200)
+        .map(|i| error_of(0.002 * (0.5 + (i % 7) as f64 / 6.0), 1e-6))
+        .collect();
+    // Before the restart: bin 5 learnt a scale of 7; bin 1 had only been filled, with 9.
+    let scale = |s: f64| BinScale {
+        scale: [s; SIGMA_GROUPS],
+        ..BinScale::default()
+    };
+    let mut prior: ScaleTable = Default::default();
+    let mut flags = crate::map::scales::CellFlags::default();
+    for level in 0..LEVELS {
+        prior[level][last][5] = scale(7.0);
+        prior[level][last][1] = scale(9.0);
+        flags[level][last][5] = true;
+    }
+    let (table, learnt) = table_of(&residuals, Some((&prior, &flags)));
+    let f = |b: usize| table[LEVEL][last][b].factor(1e-3);
+    assert_eq!(f(5), 7.0, "learnt before: kept");
+    assert_eq!(f(6), 7.0, "filled from the prior's learnt cell");
+    assert_eq!(f(1), f(3), "filled before: filled again from what is learnt now");
+    assert!((f(3) - 7.0).abs() > 2.0 && (f(3) - 9.0).abs() > 2.0);
+    assert!(learnt[LEVEL][last][3] && learnt[LEVEL][last][5] && !learnt[LEVEL][last][1]);
+    // Without the prior, bin 5 would be filled from bin 3.
+    let (fresh, fresh_learnt) = table_of(&residuals, None);
+    assert_eq!(fresh[LEVEL][last][5].factor(1e-3), f(3));
+    assert!(!fresh_learnt[LEVEL][last][5]);
+    // Departure weights alike: bin 6 kept, bin 0 filled from the nearest learnt.
+    let mut weights = [0.0; BINS];
+    weights[6] = 1.0;
+    weights[0] = 0.25;
+    let mut learnt_weights = [false; BINS];
+    learnt_weights[6] = true;
+    let (w, w_learnt) = departure_weights_of(&Residuals::default(), Some((&weights, &learnt_weights)));
+    assert_eq!(w, [1.0; BINS]);
+    assert_eq!(w_learnt, learnt_weights);
+}
+
+#[test]
 fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
     let r = |sd: f64| error_of(sd, 1e-4);
     let errors =
@@ -203,7 +246,7 @@ fn ground_off_the_robots_level_gets_scales_of_its_own_away_from_shadows() {
     residuals[LEVEL][CLASSES - 1][4] = errors(0.01);
     residuals[0][CLASSES - 1][4] = errors(0.1);
     residuals[LEVEL][0][4] = errors(0.01);
-    let table = table_of(&residuals, None);
+    let table = table_of(&residuals, None).0;
     let f = |l: usize, c: usize| table[l][c][4].factor(1e-2);
     assert!(
         f(0, CLASSES - 1) > 5.0 * f(LEVEL, CLASSES - 1),
@@ -244,7 +287,7 @@ fn a_bin_whose_errors_follow_the_departure_from_the_data_weighs_it_and_one_whose
     residuals[LEVEL][CLASSES - 1][2] = departed(&|d| d.max(1e-3));
     // Range bin 5: the same departures, but every error of σ 1 mm.
     residuals[LEVEL][CLASSES - 1][5] = departed(&|_| 1e-3);
-    let weights = departure_weights_of(&residuals, None);
+    let weights = departure_weights_of(&residuals, None).0;
     assert!(weights[2] >= 0.25, "{weights:?}");
     assert_eq!(weights[5], 0.0, "{weights:?}");
     // Bins without residuals take their nearest neighbour's.
@@ -408,7 +451,7 @@ fn a_restarted_calibrator_keeps_each_learnt_part_until_it_has_relearnt_it() {
     }
     let prior = before.scales();
     assert!(
-        before.correlation.holds_enough(),
+        before.correlation.learnt().is_some(),
         "the premise: a correlation was learnt"
     );
     let mut restarted = Calibrator::new(true).with_prior(prior);
@@ -422,35 +465,49 @@ fn a_restarted_calibrator_keeps_each_learnt_part_until_it_has_relearnt_it() {
     let mut fresh = Calibrator::new(true);
     let mut window = Window::new(16);
     let mut snapshot = MapSnapshot::default();
+    let (mut kept, mut relearnt, mut dropped, mut fresh_differs) = (0, 0, 0, 0);
     for i in 12..18 {
         let (scan, map) = scan_at(i);
         restarted.observe(&snapshot.clone().with_scales(restarted.scales()), &scan, &map);
         fresh.observe(&snapshot.clone().with_scales(fresh.scales()), &scan, &map);
         window.push(Arc::new(map));
         snapshot = window.snapshot();
-    }
-    let (now, fresh_now) = (restarted.scales(), fresh.scales());
-    let (mut kept, mut relearnt, mut fresh_differs) = (0, 0, 0);
-    for l in 0..LEVELS {
-        for c in 0..CLASSES {
-            let own = if split_by_level(c) { l } else { LEVEL };
-            for b in 0..BINS {
-                if restarted.window[own][c][b].len() < MIN_RESIDUALS {
-                    assert_eq!(now.window[l][c][b], prior.window[l][c][b], "cell {l} {c} {b}");
-                    kept += 1;
-                    fresh_differs += usize::from(fresh_now.window[l][c][b] != prior.window[l][c][b]);
-                } else {
-                    relearnt += 1;
+        // Every cell: relearnt from its own residuals, or the prior's while its range bin's
+        // departure weight is the prior's, or no longer counted learnt.
+        let (now, fresh_now) = (restarted.scales(), fresh.scales());
+        for l in 0..LEVELS {
+            for c in 0..CLASSES {
+                let own = if split_by_level(c) { l } else { LEVEL };
+                for b in 0..BINS {
+                    if restarted.window[own][c][b].len() >= MIN_RESIDUALS {
+                        relearnt += 1;
+                        assert!(now.learnt.window[l][c][b]);
+                    } else if !prior.learnt.window[l][c][b] {
+                        continue;
+                    } else if now.departure[b] == prior.departure[b] {
+                        assert_eq!(now.window[l][c][b], prior.window[l][c][b], "cell {l} {c} {b}");
+                        assert!(now.learnt.window[l][c][b]);
+                        kept += 1;
+                        fresh_differs += usize::from(fresh_now.window[l][c][b] != prior.window[l][c][b]);
+                    } else {
+                        assert!(!now.learnt.window[l][c][b], "cell {l} {c} {b}");
+                        dropped += 1;
+                    }
                 }
             }
         }
     }
-    assert!(kept > 0 && relearnt > 0, "kept {kept}, relearnt {relearnt}");
+    assert!(
+        kept > 0 && relearnt > 0 && dropped > 0,
+        "kept {kept}, relearnt {relearnt}, dropped {dropped}"
+    );
     assert!(
         fresh_differs > 0,
         "the premise: a calibrator without the prior fills those cells otherwise"
     );
-    assert!(!restarted.correlation.holds_enough());
+    let (now, fresh_now) = (restarted.scales(), fresh.scales());
+    assert!(restarted.correlation.learnt().is_none());
+    assert!(prior.learnt.correlation && now.learnt.correlation);
     assert_eq!(now.correlation, prior.correlation);
     assert_ne!(fresh_now.correlation, prior.correlation);
 }

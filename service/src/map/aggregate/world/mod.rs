@@ -142,6 +142,9 @@ pub struct TilePage {
     pub points: Vec<[f64; 3]>,
     /// Their noise variances, m².
     pub noise_var: Vec<f64>,
+    /// How its cells were seen, sorted by index ([`WorldState::seen`]; none for a cell a
+    /// correction edited while it was on disk).
+    pub seen: Vec<((i32, i32), [f32; 2])>,
 }
 
 /// What an insert did: the tiles it evicted, each scan's fused cells (for the ledger) and the
@@ -207,6 +210,10 @@ impl TilePage {
                 None => points.remove(&c),
             };
         }
+        // As in memory, a tile a correction edited forgets how its cells were seen.
+        if edits.iter().any(|&(c, _)| tile_of(c, n) == self.key) {
+            self.seen.clear();
+        }
         self.cells = cells.into_iter().collect();
         self.points = points
             .iter()
@@ -269,9 +276,8 @@ pub struct WorldAggregate {
     departure_weights: [f64; BINS],
     // How each fused cell was seen: its sensors' distance and their rays' grazing, fused by
     // inverse variance as its height (`seen_from`): what the aggregate's σ factors are keyed on.
-    // Checkpointed; not paged: a cell paged in, corrected or replaced has none until a scan
-    // fuses it again (answers there fall back to the distance from the newest sensor, seen
-    // squarely).
+    // Checkpointed and paged: a cell corrected or replaced has none until a scan fuses it again
+    // (answers there fall back to the distance from the newest sensor, seen squarely).
     seen_from: HashMap<(i32, i32), seen_from::SeenFrom>,
 }
 

@@ -7,6 +7,7 @@ use crate::map::aggregate::ledger::CellEdit;
 use crate::map::aggregate::AggregateError;
 use crate::map::elevation_gp::ElevationGp;
 use rayon::prelude::*;
+use std::collections::hash_map::Entry;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
@@ -104,6 +105,7 @@ impl WorldAggregate {
                     cells: Vec::new(),
                     points,
                     noise_var,
+                    seen: Vec::new(),
                 };
                 (key, page)
             })
@@ -121,10 +123,10 @@ impl WorldAggregate {
         self.challengers.retain(|c, _| cells.contains_key(c));
         self.replaced_at.retain(|c, _| cells.contains_key(c));
         self.returns.retain(|c, _| cells.contains_key(c));
-        self.seen_from.retain(|c, _| cells.contains_key(c));
         let mut pages: Vec<TilePage> = pages.into_values().collect();
         for page in &mut pages {
             page.cells.sort_by_key(|&(k, _)| k);
+            page.seen = self.take_seen(page.cells.iter().map(|&(c, _)| c));
         }
         pages.sort_by_key(|p| p.key);
         pages
@@ -135,9 +137,10 @@ impl WorldAggregate {
         self.tiles.contains_key(&key)
     }
 
-    /// Brings paged-out tiles back: each page's cells (where no cell is held now) and its
-    /// expert, refitted from the page's own points, so a tile that left and came back with no
-    /// new scan in between answers exactly as before. A page whose tile is held is skipped.
+    /// Brings paged-out tiles back: each page's cells (where no cell is held now) with how they
+    /// were seen, and its expert, refitted from the page's own points, so a tile that left and
+    /// came back with no new scan in between answers exactly as before. A page whose tile is
+    /// held is skipped.
     pub fn restore_pages(&mut self, pages: Vec<TilePage>) -> Result<usize, AggregateError> {
         let kernel = Kernel::matern32(self.params.kernel_variance, self.params.length_scale);
         let fresh: Vec<TilePage> = pages.into_iter().filter(|p| !self.has_tile(p.key)).collect();
@@ -151,9 +154,20 @@ impl WorldAggregate {
             })
             .collect::<Result<_, AggregateError>>()?;
         for page in &fresh {
+            let mut taken = BTreeSet::new();
             for &(c, cell) in &page.cells {
-                self.cells.entry(c).or_insert(cell);
+                if let Entry::Vacant(e) = self.cells.entry(c) {
+                    e.insert(cell);
+                    taken.insert(c);
+                }
             }
+            let seen: Vec<_> = page
+                .seen
+                .iter()
+                .filter(|(c, _)| taken.contains(c))
+                .copied()
+                .collect();
+            self.restore_seen_from(&seen);
         }
         let restored = fitted.len();
         for (key, gp) in fitted {

@@ -33,8 +33,8 @@ pub struct Seen {
 impl WorldAggregate {
     /// Folds a view from `distance_m` at `grazing` into how cell `c` was seen, by [`fused`], as
     /// its height: `before` is the cell before the view (`None`: a new cell). A cell that holds
-    /// evidence of unknown views (restored, paged in, corrected or replaced since) starts again
-    /// from this view.
+    /// evidence of unknown views (from a format-5 checkpoint or format-3 page, corrected or replaced
+    /// since) starts again from this view.
     pub(super) fn fold_seen_from(
         &mut self,
         c: (i32, i32),
@@ -83,7 +83,21 @@ impl WorldAggregate {
         records
     }
 
-    /// Takes checkpointed records back, for cells the aggregate holds; a record out of its
+    /// Removes the records of `cells` and returns them as [`Self::seen_records`] does, in
+    /// `cells`' order (a tile's page takes its cells' records to disk).
+    pub(super) fn take_seen(
+        &mut self,
+        cells: impl Iterator<Item = (i32, i32)>,
+    ) -> Vec<((i32, i32), [f32; 2])> {
+        cells
+            .filter_map(|c| {
+                let s = self.seen_from.remove(&c)?;
+                Some((c, [s.distance_m, s.grazing]))
+            })
+            .collect()
+    }
+
+    /// Takes checkpointed or paged records back, for cells the aggregate holds; a record out of its
     /// domain (not finite, a negative distance or grazing, a grazing over [`SQUARE`]) is
     /// dropped: its cell answers as one without a record.
     pub(super) fn restore_seen_from(&mut self, records: &[((i32, i32), [f32; 2])]) {

@@ -218,7 +218,19 @@ fn eviction_pages_far_tiles_out_and_they_come_back_exactly() {
         .collect();
     let far_before: Vec<_> = far_probes.iter().map(|&(x, y)| agg.elevation(x, y)).collect();
     assert!(far_before.iter().filter(|e| e.is_some()).count() > 20);
+    let seen_far = |agg: &WorldAggregate| -> Vec<Seen> {
+        far_probes.iter().map(|&(x, y)| agg.seen_at(x, y, 99.0)).collect()
+    };
+    let seen_before = seen_far(&agg);
+    assert!(
+        seen_before.iter().filter(|s| s.distance_m < 10.0).count() > 20,
+        "the premise: the far cells keep how they were seen"
+    );
     let pages = agg.evict_beyond(20.0, 0.0, 20.0);
+    assert!(
+        pages.iter().any(|p| !p.seen.is_empty()),
+        "the records go with the pages"
+    );
     let evicted = pages.len();
     assert!(
         evicted > 0 && agg.tiles() == tiles - evicted,
@@ -235,6 +247,7 @@ fn eviction_pages_far_tiles_out_and_they_come_back_exactly() {
     assert_eq!((agg.tiles(), agg.len()), (tiles, cells));
     let far_after: Vec<_> = far_probes.iter().map(|&(x, y)| agg.elevation(x, y)).collect();
     assert_eq!(far_after, far_before);
+    assert_eq!(seen_far(&agg), seen_before, "and how they were seen");
     assert_eq!(
         agg.restore_pages(pages).expect("no-op"),
         0,
@@ -357,6 +370,7 @@ fn a_correction_moves_drifted_scans_onto_the_map_the_true_poses_make() {
     let mut on_disk = wrong.clone();
     let mut pages = on_disk.evict_beyond(0.0, 0.0, -1.0);
     assert!(on_disk.tiles() == 0 && !pages.is_empty());
+    let had_records = pages.iter().any(|p| !p.seen.is_empty());
     let applied = wrong.apply_edits(plan.edits.clone(), &|_| false).expect("refit");
     assert!(applied.page_edits.is_empty() && applied.tiles_refitted > 0);
     ledger.commit(plan.moved);
@@ -403,6 +417,12 @@ fn a_correction_moves_drifted_scans_onto_the_map_the_true_poses_make() {
         assert!((o.z - cell.z).abs() < 1e-9 && (o.var - cell.var).abs() < 1e-12 && o.scans == cell.scans);
     }
     assert_eq!(restored.len(), wrong.len());
+    // A tile a correction edited forgets how its cells were seen, on disk as in memory.
+    assert!(
+        had_records,
+        "the premise: the pages held how their cells were seen"
+    );
+    assert_eq!(restored.state().seen, wrong.state().seen);
     // Where every tile around came back from a page (tiles made in memory for the cells
     // the correction moved beyond them were fitted without their paged neighbours' margins).
     let mut compared = 0;
