@@ -1,4 +1,5 @@
-//! Checkpoint files: any bytes are refused or decode into something `restore` checks; no panic.
+//! Checkpoint files: any bytes are refused or decode into something `drop_invalid_scales` and
+//! `restore` check; no panic.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
@@ -8,7 +9,8 @@ use rangegp_service::map::aggregate::world::WorldParams;
 fuzz_target!(|data: &[u8]| {
     let params = WorldParams::default();
     let id = identity("fuzz", &params);
-    if let Ok(checkpoint) = decode(data, id) {
+    if let Ok(mut checkpoint) = decode(data, id) {
+        checkpoint.drop_invalid_scales();
         let _ = checkpoint.restore(&params);
     }
 });

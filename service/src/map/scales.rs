@@ -2,7 +2,6 @@
 //! class, grazing class, range bin), each a function of the answer's own σ, interpolated so that
 //! σ never jumps. [`super::calibration`] learns them; queries and the snapshot only read them.
 
-use super::calibration::SCALE_BOUNDS;
 use super::local::HeightEstimate;
 use rangegp_proto::msg::Source;
 use serde::{Deserialize, Serialize};
@@ -39,16 +38,6 @@ impl Default for BinScale {
 }
 
 impl BinScale {
-    /// Whether it could have been learnt (a checkpoint's, before it is restored): every scale
-    /// within [`SCALE_BOUNDS`], the σ medians all −∞ (one group) or all finite, ascending.
-    pub fn in_domain(&self) -> bool {
-        let (lo, hi) = SCALE_BOUNDS;
-        let l = &self.log_sd;
-        self.scale.iter().all(|&s| (lo..=hi).contains(&s))
-            && (l.iter().all(|&v| v == f64::NEG_INFINITY) || l.iter().all(|v| v.is_finite()))
-            && l.windows(2).all(|w| w[0] <= w[1])
-    }
-
     /// How wide these scales make σ (the factor at σ = 1 mm), to choose between two equally
     /// near fills of an empty cell.
     pub(super) fn width(&self) -> f64 {

@@ -1,7 +1,7 @@
 //! The σ factors of held residuals: per source, level class, grazing class, range bin and fifth
 //! by σ.
 
-use super::{Residual, Residuals, MIN_RESIDUALS, SCALE_BOUNDS};
+use super::{Residual, Residuals, MIN_RESIDUALS, MIN_SCANS_TO_NARROW, SCALE_BOUNDS};
 use crate::map::scales::{
     split_by_level, BinScale, CellFlags, ScaleTable, BINS, CLASSES, DEPARTURE_WEIGHTS, LEVEL, LEVELS,
     SIGMA_GROUPS,
@@ -20,10 +20,14 @@ pub(super) fn table_of(
     residuals: &Residuals,
     prior: Option<(&ScaleTable, &CellFlags)>,
 ) -> (ScaleTable, CellFlags) {
+    // A class not split by level learns at level ground only, and its other levels' cells
+    // are copies: the prior counts there alone too.
+    let counts = |l: usize, c: usize| split_by_level(c) || l == LEVEL;
     let mut learnt: CellFlags = std::array::from_fn(|l| {
         std::array::from_fn(|c| {
             std::array::from_fn(|b| {
-                residuals[l][c][b].len() >= MIN_RESIDUALS || prior.is_some_and(|(_, flags)| flags[l][c][b])
+                residuals[l][c][b].len() >= MIN_RESIDUALS
+                    || (counts(l, c) && prior.is_some_and(|(_, flags)| flags[l][c][b]))
             })
         })
     });
@@ -89,7 +93,9 @@ pub(super) fn departure_weights_of(
                 let total: f64 = pooled.iter().map(&area).sum();
                 let miss = |weight: f64| {
                     let own: VecDeque<Residual> = pooled.iter().map(|r| r.with_departure(weight)).collect();
-                    let scale = bin_scale_of(&own);
+                    // The scales as the residuals would have them, however few scans: a weight
+                    // chosen under the rule for few scans would narrow σ by the back door.
+                    let scale = bin_scales(&own);
                     let inside: f64 = own
                         .iter()
                         .filter(|r| {
@@ -174,8 +180,26 @@ fn nearest_filled<T: Copy>(items: &[Option<T>], k: usize, width: impl Fn(&T) -> 
 }
 
 /// The scales of one bin: its residuals sorted by the answer's σ, cut into [`SIGMA_GROUPS`]
-/// groups of equal count when each can hold [`MIN_RESIDUALS`] (else one group for all).
+/// groups of equal count when each can hold [`MIN_RESIDUALS`] (else one group for all); none
+/// under 1 while they come from fewer than [`MIN_SCANS_TO_NARROW`] scans.
 fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
+    let mut out = bin_scales(residuals);
+    if scans_in(residuals) < MIN_SCANS_TO_NARROW {
+        out.scale = out.scale.map(|s| s.max(1.0));
+    }
+    out
+}
+
+/// How many scans `residuals` came from.
+fn scans_in(residuals: &VecDeque<Residual>) -> usize {
+    let mut scans: Vec<u64> = residuals.iter().map(|r| r.scan).collect();
+    scans.sort_unstable();
+    scans.dedup();
+    scans.len()
+}
+
+/// [`bin_scale_of`] before its rule for few scans (what a departure weight is chosen under).
+fn bin_scales(residuals: &VecDeque<Residual>) -> BinScale {
     let mut sorted: Vec<Residual> = residuals.iter().copied().collect();
     sorted.sort_by(|a, b| a.var.total_cmp(&b.var));
     let mut out = BinScale::default();

@@ -56,6 +56,11 @@ pub const PER_BIN_PER_SCAN: usize = 48;
 pub const BIN_MEMORY: usize = 1500;
 /// A bin's scale stays 1 (the map's own, leave-one-out-calibrated σ) until it holds this many.
 pub const MIN_RESIDUALS: usize = 40;
+/// A cell's scales narrow σ (a factor under 1) only on residuals from at least this many scans;
+/// until then a factor is at least 1. One scan's residuals share the errors of the few maps it
+/// tested, so in a daemon's first scans a cell can look far surer than it is; widening needs no
+/// such wait, as a σ too narrow is the planner's danger and one too wide only its cost.
+pub const MIN_SCANS_TO_NARROW: usize = 5;
 /// Bounds of a scale: σ is never shrunk below a tenth nor widened past a hundredfold.
 pub const SCALE_BOUNDS: (f64, f64) = (0.1, 100.0);
 
@@ -76,6 +81,9 @@ struct Residual {
     /// The answer's squared departure from its map's nearest data
     /// ([`HeightEstimate::departure`](super::local::HeightEstimate::departure)), m².
     dep2: f64,
+    /// Which observed scan it came from (the calibrator's count): how many scans a cell's
+    /// residuals stand for ([`MIN_SCANS_TO_NARROW`]).
+    scan: u64,
 }
 
 impl Residual {
@@ -103,6 +111,8 @@ pub struct Calibrator {
     // Scales learnt before a restart: each part stands until it is relearnt
     // ([`Self::with_prior`]).
     prior: Option<SigmaScales>,
+    // Scans observed so far (each residual says which it came from).
+    observed: u64,
 }
 
 impl Calibrator {
@@ -165,6 +175,7 @@ impl Calibrator {
         let Some(newest) = snapshot.maps().first() else {
             return 0;
         };
+        self.observed += 1;
         let relief_before = self.scales.relief;
         self.relief.observe(scan, map);
         let prior = self.prior;
@@ -230,6 +241,7 @@ impl Calibrator {
                 data_m: a.estimate.data_m,
                 relief_var: 0.0,
                 dep2: a.estimate.departure.powi(2),
+                scan: self.observed,
             });
             touched[which] = true;
             answered += usize::from(primary);
@@ -350,7 +362,8 @@ impl Calibrator {
     /// The shape of the calibrated errors: the shares of every held residual (both sources,
     /// weighted by area; `window` with the departure in its variances) within ±1 and ±1.96
     /// calibrated σ, fitted by [`TailShape::fit`]; until [`MIN_TAIL_RESIDUALS`] count, the prior's
-    /// ([`Self::with_prior`]) or a Gaussian.
+    /// shape where the prior had learnt it ([`Self::with_prior`]), else a Gaussian; and whether
+    /// it is learnt.
     /// Only residuals whose return noise variance is at most [`LATENT_SHARE`] of the calibrated
     /// latent variance count.
     fn tails(&self, window: &Residuals) -> (TailShape, bool) {

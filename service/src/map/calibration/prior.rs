@@ -1,8 +1,9 @@
 //! σ scales restored from a checkpoint: checked before use, and fitted to this daemon's
 //! settings before its calibrator starts from them ([`super::Calibrator::with_prior`]).
 
+use super::SCALE_BOUNDS;
 use crate::map::correlation::LENGTH_BOUNDS_M;
-use crate::map::scales::{CellFlags, SigmaScales, DEPARTURE_WEIGHTS};
+use crate::map::scales::{BinScale, CellFlags, SigmaScales, DEPARTURE_WEIGHTS};
 
 /// Whether every value of `scales` is one the calibrator could have learnt; else what is not.
 /// A checkpoint whose scales fail this keeps its map and drops them.
@@ -11,7 +12,7 @@ pub fn check(scales: &SigmaScales) -> Result<(), &'static str> {
     if !tables
         .iter()
         .flat_map(|t| t.iter().flatten().flatten())
-        .all(|b| b.in_domain())
+        .all(learnable)
     {
         return Err("a σ scale is out of its bounds, or its σ medians are mixed or not ascending");
     }
@@ -32,10 +33,21 @@ pub fn check(scales: &SigmaScales) -> Result<(), &'static str> {
     Ok(())
 }
 
+/// Whether a calibrator could have learnt `bin`: every scale within [`SCALE_BOUNDS`], the σ
+/// medians all −∞ (one group) or all finite, ascending.
+fn learnable(bin: &BinScale) -> bool {
+    let (lo, hi) = SCALE_BOUNDS;
+    let l = &bin.log_sd;
+    bin.scale.iter().all(|&s| (lo..=hi).contains(&s))
+        && (l.iter().all(|&v| v == f64::NEG_INFINITY) || l.iter().all(|v| v.is_finite()))
+        && l.windows(2).all(|w| w[0] <= w[1])
+}
+
 /// The scales `prior` (a checkpoint's) as a daemon whose window answers count the relief
 /// (`relief_in_heights`) and the other views' disagreement (`view_disagreement`) as given
-/// starts from. The window's scales and departure weights were learnt on variances that the
-/// stored settings made; under other settings they are forgotten (relearnt from the next scans).
+/// starts from. The window's scales, departure weights and the tail shape were learnt on
+/// variances that the stored settings made; under other settings they are forgotten (relearnt
+/// from the next scans).
 pub fn under_settings(prior: SigmaScales, relief_in_heights: bool, view_disagreement: f64) -> SigmaScales {
     let same = prior.relief_in_heights == relief_in_heights && prior.view_disagreement == view_disagreement;
     let mut scales = SigmaScales {
@@ -47,8 +59,10 @@ pub fn under_settings(prior: SigmaScales, relief_in_heights: bool, view_disagree
         let fresh = SigmaScales::default();
         scales.window = fresh.window;
         scales.departure = fresh.departure;
+        scales.tails = fresh.tails;
         scales.learnt.window = CellFlags::default();
         scales.learnt.departure = fresh.learnt.departure;
+        scales.learnt.tails = false;
     }
     scales
 }
@@ -67,11 +81,14 @@ mod tests {
         prior.learnt.window[1][2][3] = true;
         prior.learnt.aggregate[1][2][3] = true;
         prior.learnt.departure[4] = true;
+        prior.learnt.tails = true;
+        prior.tails.dof = 3.0;
         prior.correlation.length_m = 0.3;
         assert_eq!(under_settings(prior, false, 0.3), prior);
         let other = under_settings(prior, false, 0.5);
         assert_eq!(other.view_disagreement, 0.5);
-        assert!(!other.learnt.window[1][2][3] && !other.learnt.departure[4]);
+        assert!(!other.learnt.window[1][2][3] && !other.learnt.departure[4] && !other.learnt.tails);
+        assert_eq!(other.tails, crate::map::scales::TailShape::default());
         assert_eq!(other.departure, [0.0; crate::map::scales::BINS]);
         assert!(other.learnt.aggregate[1][2][3]);
         assert_eq!(other.correlation, prior.correlation);

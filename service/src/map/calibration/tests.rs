@@ -194,6 +194,19 @@ fn an_empty_cell_takes_its_nearest_learnt_neighbours_scales() {
     assert!(f(CLASSES - 1, 4) > 5.0 * f(CLASSES - 1, 1));
 }
 
+/// A prior table of factors 1 with no cell learnt, to be filled in.
+fn empty_prior() -> (ScaleTable, crate::map::scales::CellFlags) {
+    (Default::default(), Default::default())
+}
+
+/// Scales of `s` for every σ group.
+fn scale(s: f64) -> BinScale {
+    BinScale {
+        scale: [s; SIGMA_GROUPS],
+        ..BinScale::default()
+    }
+}
+
 #[test]
 fn a_cell_the_prior_learnt_keeps_its_scales_one_it_filled_is_filled_again() {
     let mut residuals = Residuals::default();
@@ -203,12 +216,7 @@ fn a_cell_the_prior_learnt_keeps_its_scales_one_it_filled_is_filled_again() {
         .map(|i| error_of(0.002 * (0.5 + (i % 7) as f64 / 6.0), 1e-6))
         .collect();
     // Before the restart: bin 5 learnt a scale of 7; bin 1 had only been filled, with 9.
-    let scale = |s: f64| BinScale {
-        scale: [s; SIGMA_GROUPS],
-        ..BinScale::default()
-    };
-    let mut prior: ScaleTable = Default::default();
-    let mut flags = crate::map::scales::CellFlags::default();
+    let (mut prior, mut flags) = empty_prior();
     for level in 0..LEVELS {
         prior[level][last][5] = scale(7.0);
         prior[level][last][1] = scale(9.0);
@@ -234,6 +242,66 @@ fn a_cell_the_prior_learnt_keeps_its_scales_one_it_filled_is_filled_again() {
     let (w, w_learnt) = departure_weights_of(&Residuals::default(), Some((&weights, &learnt_weights)));
     assert_eq!(w, [1.0; BINS]);
     assert_eq!(w_learnt, learnt_weights);
+}
+
+#[test]
+fn a_prior_cell_of_a_class_not_split_by_level_counts_at_level_ground_only() {
+    let last = CLASSES - 1;
+    let shadow = 0;
+    assert!(split_by_level(last) && !split_by_level(shadow));
+    // The prior learnt the near-shadow class at level ground (scale 2), copied to every level,
+    // but an off-level row of it holds a stale 9 that must not count.
+    let (mut prior, mut flags) = empty_prior();
+    for l in 0..LEVELS {
+        prior[l][shadow][3] = scale(if l == LEVEL { 2.0 } else { 9.0 });
+        flags[l][shadow][3] = true;
+    }
+    // Now: only the split class at level ground is learnt.
+    let mut held = Residuals::default();
+    held[LEVEL][last][3] = residuals(3e-3, 1e-6, 300)
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| Residual { scan: i as u64, ..r })
+        .collect();
+    let (table, learnt) = table_of(&held, Some((&prior, &flags)));
+    for l in 0..LEVELS {
+        assert_eq!(
+            table[l][shadow][3].factor(1e-3),
+            2.0,
+            "level {l}: level ground's prior"
+        );
+        assert!(learnt[l][shadow][3]);
+        // The split class off level ground has nothing of its own: it takes the nearest
+        // level's, not a fill from the stale near-shadow row.
+        assert_eq!(table[l][last], table[LEVEL][last], "level {l}");
+    }
+}
+
+#[test]
+fn a_cell_narrows_sigma_only_on_residuals_from_several_scans_but_widens_at_once() {
+    let last = CLASSES - 1;
+    // Errors a third of σ (narrow it) in bin 2, three times σ (widen it) in bin 4, 300 of each
+    // spread over `scans` scans.
+    let table = |scans: u64| {
+        let mut held = Residuals::default();
+        for (b, ratio) in [(2, 1.0 / 3.0), (4, 3.0)] {
+            held[LEVEL][last][b] = residuals(ratio * 1e-3, 1e-6, 300)
+                .into_iter()
+                .enumerate()
+                .map(|(i, r)| Residual {
+                    scan: i as u64 * scans / 300,
+                    ..r
+                })
+                .collect();
+        }
+        let t = table_of(&held, None).0;
+        (t[LEVEL][last][2].factor(1e-3), t[LEVEL][last][4].factor(1e-3))
+    };
+    let (narrow_few, wide_few) = table(MIN_SCANS_TO_NARROW as u64 - 1);
+    let (narrow_many, wide_many) = table(MIN_SCANS_TO_NARROW as u64);
+    assert_eq!(narrow_few, 1.0, "too few scans to narrow");
+    assert!(narrow_many < 0.5, "{narrow_many}");
+    assert!(wide_few > 2.5 && wide_few == wide_many, "{wide_few} {wide_many}");
 }
 
 #[test]
@@ -278,6 +346,7 @@ fn a_bin_whose_errors_follow_the_departure_from_the_data_weighs_it_and_one_whose
                 let z = distrs::Normal::ppf(((i * 7919) % n) as f64 / n as f64 + 0.5 / n as f64, 0.0, 1.0);
                 Residual {
                     dep2: d * d,
+                    scan: i as u64,
                     ..error_of(z * error_sd(d), 1e-6)
                 }
             })
@@ -468,10 +537,13 @@ fn a_restarted_calibrator_keeps_each_learnt_part_until_it_has_relearnt_it() {
     let (mut kept, mut relearnt, mut dropped, mut fresh_differs) = (0, 0, 0, 0);
     for i in 12..18 {
         let (scan, map) = scan_at(i);
-        restarted.observe(&snapshot.clone().with_scales(restarted.scales()), &scan, &map);
+        let answered = restarted.observe(&snapshot.clone().with_scales(restarted.scales()), &scan, &map);
         fresh.observe(&snapshot.clone().with_scales(fresh.scales()), &scan, &map);
         window.push(Arc::new(map));
         snapshot = window.snapshot();
+        if answered == 0 {
+            continue;
+        }
         // Every cell: relearnt from its own residuals, or the prior's while its range bin's
         // departure weight is the prior's, or no longer counted learnt.
         let (now, fresh_now) = (restarted.scales(), fresh.scales());

@@ -142,8 +142,8 @@ pub struct TilePage {
     pub points: Vec<[f64; 3]>,
     /// Their noise variances, m².
     pub noise_var: Vec<f64>,
-    /// How its cells were seen, sorted by index ([`WorldState::seen`]; none for a cell a
-    /// correction edited while it was on disk).
+    /// How its cells were seen, sorted by index ([`WorldState::seen`]; none once a correction
+    /// edited any of its cells while it was on disk).
     pub seen: Vec<((i32, i32), [f32; 2])>,
 }
 

@@ -206,6 +206,37 @@ fn a_scan_refits_only_the_tiles_it_touches() {
 }
 
 #[test]
+fn a_page_forgets_how_its_cells_were_seen_only_when_a_correction_edits_one_of_them() {
+    let params = WorldParams::default();
+    let n = params.tile_cells;
+    let cell = Cell {
+        z: 0.1,
+        var: 1e-4,
+        scans: 2,
+    };
+    let page = TilePage {
+        key: (0, 0),
+        cells: vec![((1, 1), cell), ((2, 1), cell)],
+        points: Vec::new(),
+        noise_var: Vec::new(),
+        seen: vec![((1, 1), [3.0, 0.5]), ((2, 1), [4.0, 1.0])],
+    };
+    let lift = CellEdit {
+        precision: 1e4,
+        weighted_z: 3e3,
+        scans: 1,
+    };
+    // An edit of a margin cell (another tile's) leaves the records.
+    let mut margin = page.clone();
+    margin.apply_edits(&[((n, 1), lift)], &params);
+    assert_eq!(margin.seen, page.seen);
+    // An edit of one of its own cells forgets them all, as a tile in memory does.
+    let mut own = page.clone();
+    own.apply_edits(&[((2, 1), lift)], &params);
+    assert!(own.seen.is_empty());
+}
+
+#[test]
 fn eviction_pages_far_tiles_out_and_they_come_back_exactly() {
     let terrain = Heightmap::flat(80.0, 0.05, 0.0);
     let mut agg = WorldAggregate::new(WorldParams::default());
