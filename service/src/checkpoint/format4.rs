@@ -2,7 +2,7 @@
 //! fused with), read on upgrade so that a daemon updated in place keeps its map: a format-4
 //! daemon fused every window answer with its map's own variance alone, which is weights 0.
 
-use super::Checkpoint;
+use super::OldCheckpoint;
 use crate::map::aggregate::world::{Cell, ScanRef, WorldParams, WorldState};
 use crate::map::scales::BINS;
 use serde::{Deserialize, Serialize};
@@ -10,22 +10,13 @@ use serde::{Deserialize, Serialize};
 /// The layout version this module reads.
 pub const VERSION: u32 = 4;
 
-/// A format-4 [`Checkpoint`].
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CheckpointV4 {
-    /// When it was taken, nanoseconds since the Unix epoch.
-    pub created_unix_ns: u64,
-    /// Kernel variance the fitter used, m².
-    pub kernel_variance: f64,
-    /// Kernel length scale the fitter used.
-    pub length_scale: f64,
-    /// The aggregate.
-    pub world: WorldStateV4,
-}
+/// A format-4 [`Checkpoint`](super::Checkpoint).
+pub type CheckpointV4 = OldCheckpoint<WorldStateV4>;
 
-/// A format-4 [`WorldState`]: its history without departure weights.
+/// A format-4 [`WorldState`]: its history without departure weights (`H` = [`ScanRefV4`]);
+/// format 5's is the same with them (`H` = [`ScanRef`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct WorldStateV4 {
+pub struct WorldStateV4<H = ScanRefV4> {
     /// Settings.
     pub params: WorldParams,
     /// Cells by (column, row) index, sorted.
@@ -33,7 +24,7 @@ pub struct WorldStateV4 {
     /// Scans folded in since the aggregate was created.
     pub inserts: u64,
     /// The newest of them, oldest first.
-    pub history: Vec<ScanRefV4>,
+    pub history: Vec<H>,
     /// Where the last scans' sensors stood, (x, y) in metres, oldest first.
     pub views: Vec<[f64; 2]>,
 }
@@ -66,21 +57,15 @@ impl From<ScanRefV4> for ScanRef {
     }
 }
 
-impl From<CheckpointV4> for Checkpoint {
-    fn from(c: CheckpointV4) -> Self {
+impl<H: Into<ScanRef>> From<WorldStateV4<H>> for WorldState {
+    fn from(w: WorldStateV4<H>) -> Self {
         Self {
-            created_unix_ns: c.created_unix_ns,
-            kernel_variance: c.kernel_variance,
-            length_scale: c.length_scale,
-            world: WorldState {
-                params: c.world.params,
-                cells: c.world.cells,
-                inserts: c.world.inserts,
-                history: c.world.history.into_iter().map(ScanRef::from).collect(),
-                views: c.world.views,
-                seen: Vec::new(),
-            },
-            scales: None,
+            params: w.params,
+            cells: w.cells,
+            inserts: w.inserts,
+            history: w.history.into_iter().map(Into::into).collect(),
+            views: w.views,
+            seen: Vec::new(),
         }
     }
 }

@@ -21,7 +21,7 @@ pub mod store;
 pub mod writer;
 
 use crate::map::aggregate::world::{
-    WorldAggregate, WorldParams, WorldState, HISTORY_LEN, SQUARE, VIEWS_KEPT,
+    record_in_domain, WorldAggregate, WorldParams, WorldState, HISTORY_LEN, VIEWS_KEPT,
 };
 use crate::map::aggregate::AggregateError;
 use crate::map::scales::SigmaScales;
@@ -47,6 +47,32 @@ pub struct Checkpoint {
     /// a restarted daemon answers with them, and they stand for each part the calibrator has
     /// not relearnt since ([`Calibrator::with_prior`](crate::map::calibration::Calibrator::with_prior)).
     pub scales: Option<SigmaScales>,
+}
+
+/// A checkpoint of format 5 or older: the same header fields, and the aggregate's state as that
+/// format kept it (`W`), read on upgrade ([`format::decode`]); it holds no σ scales.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OldCheckpoint<W> {
+    /// When it was taken, nanoseconds since the Unix epoch.
+    pub created_unix_ns: u64,
+    /// Kernel variance the fitter used, m².
+    pub kernel_variance: f64,
+    /// Kernel length scale the fitter used.
+    pub length_scale: f64,
+    /// The aggregate.
+    pub world: W,
+}
+
+impl<W: Into<WorldState>> From<OldCheckpoint<W>> for Checkpoint {
+    fn from(c: OldCheckpoint<W>) -> Self {
+        Self {
+            created_unix_ns: c.created_unix_ns,
+            kernel_variance: c.kernel_variance,
+            length_scale: c.length_scale,
+            world: c.world.into(),
+            scales: None,
+        }
+    }
 }
 
 /// Why a decoded checkpoint cannot be restored.
@@ -134,11 +160,7 @@ impl Checkpoint {
                 "seen-from records are not sorted and unique",
             ));
         }
-        let seen_ok = w
-            .seen
-            .iter()
-            .all(|(_, [d, g])| d.is_finite() && *d >= 0.0 && (0.0..=SQUARE as f32).contains(g));
-        if !seen_ok {
+        if !w.seen.iter().all(|&(_, record)| record_in_domain(record)) {
             return Err(RestoreError::Invalid(
                 "a cell's seen-from distance or grazing is out of its domain",
             ));
@@ -215,7 +237,7 @@ pub fn resume(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::map::aggregate::world::{Cell, ScanRef};
+    use crate::map::aggregate::world::{Cell, ScanRef, SQUARE};
     use crate::map::aggregate::Aggregate;
     use rand::{Rng, SeedableRng};
     use rand_pcg::Pcg64;

@@ -98,9 +98,9 @@ impl ReliefLearner {
                 let noise = q.iter().map(|d| d.noise_var).sum::<f64>() / n;
                 floor = floor.max(square - noise);
                 learnt[k] = true;
-            } else if let Some((relief, flags)) = prior.filter(|(_, flags)| flags[k]) {
+            } else if let Some((relief, _)) = prior.filter(|(_, flags)| flags[k]) {
                 floor = floor.max(relief.var_m2[k]);
-                learnt[k] = flags[k];
+                learnt[k] = true;
             }
             var_m2[k] = floor;
         }

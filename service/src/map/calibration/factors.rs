@@ -184,18 +184,21 @@ fn nearest_filled<T: Copy>(items: &[Option<T>], k: usize, width: impl Fn(&T) -> 
 /// under 1 while they come from fewer than [`MIN_SCANS_TO_NARROW`] scans.
 fn bin_scale_of(residuals: &VecDeque<Residual>) -> BinScale {
     let mut out = bin_scales(residuals);
-    if scans_in(residuals) < MIN_SCANS_TO_NARROW {
+    if !from_enough_scans(residuals) {
         out.scale = out.scale.map(|s| s.max(1.0));
     }
     out
 }
 
-/// How many scans `residuals` came from.
-fn scans_in(residuals: &VecDeque<Residual>) -> usize {
-    let mut scans: Vec<u64> = residuals.iter().map(|r| r.scan).collect();
-    scans.sort_unstable();
-    scans.dedup();
-    scans.len()
+/// Whether a cell's `residuals` (held in the order they were observed, so one scan's lie
+/// together) come from at least [`MIN_SCANS_TO_NARROW`] scans.
+fn from_enough_scans(residuals: &VecDeque<Residual>) -> bool {
+    let needed = MIN_SCANS_TO_NARROW - 1;
+    let next_scans = residuals
+        .iter()
+        .zip(residuals.iter().skip(1))
+        .filter(|(a, b)| a.scan != b.scan);
+    !residuals.is_empty() && next_scans.take(needed).count() == needed
 }
 
 /// [`bin_scale_of`] before its rule for few scans (what a departure weight is chosen under).

@@ -12,7 +12,7 @@ mod answers;
 mod change;
 mod pages;
 mod seen_from;
-pub use seen_from::{Seen, SQUARE};
+pub use seen_from::{record_in_domain, Seen, SeenRecord, SQUARE};
 
 pub use super::ledger::Cell;
 use super::ledger::{CellEdit, CellEdits, FusedCell, ScanRaster};
@@ -144,7 +144,7 @@ pub struct TilePage {
     pub noise_var: Vec<f64>,
     /// How its cells were seen, sorted by index ([`WorldState::seen`]; none once a correction
     /// edited any of its cells while it was on disk).
-    pub seen: Vec<((i32, i32), [f32; 2])>,
+    pub seen: Vec<SeenRecord>,
 }
 
 /// What an insert did: the tiles it evicted, each scan's fused cells (for the ledger) and the
@@ -244,7 +244,7 @@ pub struct WorldState {
     /// How each cell that has a record was seen, sorted by index: the fusing sensors' distance
     /// (metres) and their rays' grazing ([`WorldAggregate::seen_at`]), which key the aggregate's
     /// σ factors.
-    pub seen: Vec<((i32, i32), [f32; 2])>,
+    pub seen: Vec<SeenRecord>,
 }
 
 /// The world-frame tiled elevation aggregate.

@@ -11,6 +11,16 @@ use super::{fused, Cell, WorldAggregate};
 /// widest grazing class (an unmeasured, infinite grazing counts as this too).
 pub const SQUARE: f64 = 1.0;
 
+/// One cell's record as checkpointed and paged: its index, and the fusing sensors' distance
+/// (metres) and their rays' grazing.
+pub type SeenRecord = ((i32, i32), [f32; 2]);
+
+/// Whether a checkpointed or paged record's (distance, grazing) could have been fused: a
+/// finite distance not below 0, a grazing in [0, [`SQUARE`]].
+pub fn record_in_domain([distance_m, grazing]: [f32; 2]) -> bool {
+    distance_m.is_finite() && distance_m >= 0.0 && (0.0..=SQUARE as f32).contains(&grazing)
+}
+
 /// How one cell was seen ([`WorldAggregate::seen_at`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(super) struct SeenFrom {
@@ -73,7 +83,7 @@ impl WorldAggregate {
 
     /// Every cell's record as checkpointed ([`WorldState::seen`](super::WorldState::seen)):
     /// (distance, grazing), sorted by index.
-    pub(super) fn seen_records(&self) -> Vec<((i32, i32), [f32; 2])> {
+    pub(super) fn seen_records(&self) -> Vec<SeenRecord> {
         let mut records: Vec<_> = self
             .seen_from
             .iter()
@@ -85,10 +95,7 @@ impl WorldAggregate {
 
     /// Removes the records of `cells` and returns them as [`Self::seen_records`] does, in
     /// `cells`' order (a tile's page takes its cells' records to disk).
-    pub(super) fn take_seen(
-        &mut self,
-        cells: impl Iterator<Item = (i32, i32)>,
-    ) -> Vec<((i32, i32), [f32; 2])> {
+    pub(super) fn take_seen(&mut self, cells: impl Iterator<Item = (i32, i32)>) -> Vec<SeenRecord> {
         cells
             .filter_map(|c| {
                 let s = self.seen_from.remove(&c)?;
@@ -97,14 +104,12 @@ impl WorldAggregate {
             .collect()
     }
 
-    /// Takes checkpointed or paged records back, for cells the aggregate holds; a record out of its
-    /// domain (not finite, a negative distance or grazing, a grazing over [`SQUARE`]) is
-    /// dropped: its cell answers as one without a record.
-    pub(super) fn restore_seen_from(&mut self, records: &[((i32, i32), [f32; 2])]) {
-        let square = SQUARE as f32;
+    /// Takes checkpointed or paged records back, for cells the aggregate holds; a record out of
+    /// its domain ([`record_in_domain`]; a checkpoint with one is refused before this, a page's
+    /// is dropped here) leaves its cell answering as one without a record.
+    pub(super) fn restore_seen_from(&mut self, records: &[SeenRecord]) {
         for &(c, [distance_m, grazing]) in records {
-            let valid = distance_m.is_finite() && distance_m >= 0.0 && (0.0..=square).contains(&grazing);
-            if valid && self.cells.contains_key(&c) {
+            if record_in_domain([distance_m, grazing]) && self.cells.contains_key(&c) {
                 self.seen_from.insert(c, SeenFrom { distance_m, grazing });
             }
         }
