@@ -95,8 +95,13 @@ pub enum RestoreError {
     Refit(#[from] AggregateError),
 }
 
+/// What the identity hashes in the slot of `max_gap_m`: the value every file before step 25
+/// was written under. The gap is an answer-time setting ([`WorldParams::same_cells_as`]); the
+/// slot keeps that value so that those files stay this map's.
+const IDENTITY_MAX_GAP_M: f64 = 0.75;
+
 /// The identity a checkpoint must match to be restored: the map id and the aggregate settings
-/// (a checkpoint of another map, or of cells of another size, is foreign).
+/// the cells depend on (a checkpoint of another map, or of cells of another size, is foreign).
 pub fn identity(map_id: &str, params: &WorldParams) -> u64 {
     let mut text = String::from(map_id);
     for v in [
@@ -105,7 +110,7 @@ pub fn identity(map_id: &str, params: &WorldParams) -> u64 {
         params.length_scale,
         params.nugget_m2,
         params.max_cell_sd_m,
-        params.max_gap_m,
+        IDENTITY_MAX_GAP_M,
         params.max_reach_m,
     ] {
         text.push_str(&format!("|{:016x}", v.to_bits()));
@@ -115,10 +120,11 @@ pub fn identity(map_id: &str, params: &WorldParams) -> u64 {
 }
 
 impl Checkpoint {
-    /// Checks every value and rebuilds the aggregate (refitting its tiles).
+    /// Checks every value and rebuilds the aggregate (refitting its tiles), answering under
+    /// `params` (whose answer-time settings may differ from the checkpoint's).
     pub fn restore(&self, params: &WorldParams) -> Result<WorldAggregate, RestoreError> {
         let w = &self.world;
-        if w.params != *params {
+        if !w.params.same_cells_as(params) {
             return Err(RestoreError::ParamsDiffer);
         }
         let positive = |v: f64| v.is_finite() && v > 0.0;
@@ -165,7 +171,10 @@ impl Checkpoint {
                 "a cell's seen-from distance or grazing is out of its domain",
             ));
         }
-        Ok(WorldAggregate::from_state(w.clone())?)
+        Ok(WorldAggregate::from_state(WorldState {
+            params: *params,
+            ..w.clone()
+        })?)
     }
 
     /// Drops σ scales that are not ones a calibrator could have learnt
@@ -305,6 +314,30 @@ pub(crate) mod tests {
         assert_eq!(world.state().seen, c.world.seen);
         let seen = world.seen_at(0.125, 0.125, 99.0);
         assert_eq!((seen.distance_m, seen.grazing), (3.5, f64::from(0.4f32)));
+    }
+
+    #[test]
+    fn a_checkpoint_written_under_another_gap_is_this_maps_and_answers_under_todays() {
+        let today = WorldParams::default();
+        let before = WorldParams {
+            max_gap_m: 0.75,
+            ..today
+        };
+        assert_eq!(identity("m", &before), id(), "the gap is no part of the identity");
+        let mut c = sample();
+        c.world.params = before;
+        let bytes = encode(&c, identity("m", &before)).expect("encode");
+        let world = decode(&bytes, id())
+            .expect("decode")
+            .restore(&today)
+            .expect("restore");
+        assert_eq!(world.params().max_gap_m, today.max_gap_m);
+        // A point 0.6 m beyond the last row of cells (centres at y = 1.875): answered under the
+        // old gap, not under today's.
+        let (x, y) = (0.125, 1.875 + 0.6);
+        let old = c.restore(&before).expect("restore under the old gap");
+        assert!(old.elevation(x, y).is_some());
+        assert!(world.elevation(x, y).is_none());
     }
 
     #[test]
