@@ -2,7 +2,6 @@
 //! how much data stands behind an answer.
 
 use super::WorldAggregate;
-use crate::map::aggregate::Aggregate;
 use crate::map::elevation_gp::ElevationGp;
 use crate::map::local::{provenance_of, HeightEstimate, RayEstimate};
 use crate::map::root;
@@ -25,9 +24,15 @@ impl WorldAggregate {
     /// Distance from map (x, y) to the nearest fused cell's centre, if one lies within
     /// `max_gap_m`.
     pub(super) fn nearest_cell(&self, x: f64, y: f64) -> Option<f64> {
+        self.nearest_cell_within(x, y, self.params.max_gap_m)
+    }
+
+    /// Distance from map (x, y) to the nearest fused cell's centre, if one lies within
+    /// `reach_m`.
+    fn nearest_cell_within(&self, x: f64, y: f64, reach_m: f64) -> Option<f64> {
         let (ci, cj) = self.cell_of(x, y);
         let cell = self.params.cell_m;
-        let reach = (self.params.max_gap_m / cell).ceil() as i32;
+        let reach = (reach_m / cell).ceil() as i32;
         let mut nearest = f64::INFINITY;
         // Ring by ring outwards: every centre of ring r + 1 and beyond lies at least (r + ½)
         // cells away, so a nearer one found by ring r ends the search (the same minimum as
@@ -48,14 +53,16 @@ impl WorldAggregate {
                 break;
             }
         }
-        (nearest <= self.params.max_gap_m).then_some(nearest)
+        (nearest <= reach_m).then_some(nearest)
     }
 
     /// Casts a map-frame ray (unit `dir`) over the aggregate's surface up to `max_range`: the
     /// first crossing of the ray below the fused heights (sampled every half cell, then
     /// refined), its variance by the delta method through the height's, and the probability of
     /// a hit before `max_range`. Only ground within a correlation length of fused cells counts
-    /// (observed or interpolated). `None` when the aggregate knows the ground nowhere along the
+    /// (observed or interpolated), farther than a height is answered ([`WorldParams::max_gap_m`]):
+    /// a ray crossing a gap of a cell or two between known ground must still meet the surface
+    /// beyond it. `None` when the aggregate knows the ground nowhere along the
     /// ray. Without a crossing, the hit probability is set by the ray's closest approach to the
     /// surface (in σ of the height there), as for a local map; a ray that first meets known
     /// ground already below it crossed the surface in ground the aggregate does not know: its
@@ -71,10 +78,10 @@ impl WorldAggregate {
         // Positive below the surface, negative above it: a crossing from − to + is a hit. Only
         // ground within a correlation length of data counts: beyond it the surface is the
         // tiles' smooth continuation, and a ray must not stop on it.
+        let reach = self.params.length_scale;
         let known = |x: f64, y: f64| {
-            self.graded(x, y)
-                .filter(|(_, p)| *p != Provenance::Extrapolated)
-                .map(|(e, _)| e)
+            self.nearest_cell_within(x, y, reach)?;
+            self.blend(x, y)
         };
         let gap = |t: f64| {
             let p = point(t);
@@ -83,7 +90,9 @@ impl WorldAggregate {
         let samples = ((max_range / (0.5 * self.params.cell_m)).ceil() as usize).clamp(8, 4000);
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let hit = point(root.t);
-            let (e, provenance) = self.graded(hit.x, hit.y)?;
+            let datum_m = self.nearest_cell_within(hit.x, hit.y, reach)?;
+            let e = self.blend(hit.x, hit.y)?;
+            let provenance = provenance_of(datum_m, self.params.length_scale);
             let f = sd_factor(&hit);
             let step = 0.25 * self.params.cell_m;
             let band = root::band_variance(gap, root, f * e.var.sqrt(), step, 0.0, max_range);
@@ -99,8 +108,7 @@ impl WorldAggregate {
         let (closest, at) = (0..=samples)
             .filter_map(|k| {
                 let p = point(max_range * k as f64 / samples as f64);
-                self.elevation(p.x, p.y)
-                    .map(|e| ((e.z - p.z) / e.var.sqrt().max(1e-12), p))
+                known(p.x, p.y).map(|e| ((e.z - p.z) / e.var.sqrt().max(1e-12), p))
             })
             .max_by(|a, b| a.0.total_cmp(&b.0))?;
         Some(RayEstimate {
@@ -140,13 +148,6 @@ impl WorldAggregate {
     pub(super) fn estimate(&self, x: f64, y: f64) -> Option<HeightEstimate> {
         self.nearest_cell(x, y)?;
         self.blend(x, y)
-    }
-
-    /// [`Self::estimate`] with its provenance.
-    fn graded(&self, x: f64, y: f64) -> Option<(HeightEstimate, Provenance)> {
-        let datum_m = self.nearest_cell(x, y)?;
-        let e = self.blend(x, y)?;
-        Some((e, provenance_of(datum_m, self.params.length_scale)))
     }
 
     /// The tiles at (x, y) blended with a partition of unity (mean and variance of the mixture).

@@ -158,6 +158,22 @@ fn provenance_follows_the_distance_to_the_nearest_fused_cell() {
 }
 
 #[test]
+fn a_ray_meets_the_surface_across_a_gap_too_wide_to_answer_a_height_in() {
+    // The block without its columns 8 and 9: a 0.5 m strip whose middle lies 0.375 m from the
+    // nearest centres, beyond the gap heights are answered across, within a correlation length.
+    let mut state = block().state();
+    state.cells.retain(|&((i, _), _)| i != 8 && i != 9);
+    let agg = WorldAggregate::from_state(state).expect("refit");
+    assert!(agg.elevation(2.25, 2.125).is_none());
+    let hit = agg
+        .cast(Vector3::new(2.25, 2.125, 1.0), -Vector3::z(), 2.0, &|_| 1.0)
+        .expect("known to rays");
+    let t = hit.range.expect("a hit");
+    assert!((t - 0.8).abs() < 5e-3, "range {t}");
+    assert_eq!(hit.provenance, Provenance::Interpolated);
+}
+
+#[test]
 fn a_ray_meets_the_fused_surface_where_geometry_says() {
     let agg = block();
     // From 1 m above the block's middle, 45° down along +x: the surface at z = 0.2 is met
