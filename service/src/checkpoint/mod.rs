@@ -317,7 +317,7 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn a_checkpoint_written_under_another_gap_is_this_maps_and_answers_under_todays() {
+    fn a_checkpoint_written_under_another_gap_or_change_detection_is_this_maps() {
         let today = WorldParams::default();
         let before = WorldParams {
             max_gap_m: 0.75,
@@ -338,6 +338,16 @@ pub(crate) mod tests {
         let old = c.restore(&before).expect("restore under the old gap");
         assert!(old.elevation(x, y).is_some());
         assert!(world.elevation(x, y).is_none());
+        // Change detection turned on across a restart keeps the map too; another cell size
+        // does not.
+        let detecting = WorldParams {
+            change_detection: true,
+            ..today
+        };
+        assert_eq!(identity("m", &detecting), id());
+        assert!(c.restore(&detecting).is_ok_and(|w| w.params().change_detection));
+        let coarser = WorldParams { cell_m: 0.5, ..today };
+        assert_eq!(c.restore(&coarser).err(), Some(RestoreError::ParamsDiffer));
     }
 
     #[test]

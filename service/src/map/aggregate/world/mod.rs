@@ -103,12 +103,17 @@ impl Default for WorldParams {
 }
 
 impl WorldParams {
-    /// Whether cells fused under `other` are cells of these settings: every setting but the
-    /// answer-time [`Self::max_gap_m`] equal.
+    /// Whether cells fused under `other` are cells of these settings: every setting equal but
+    /// the answer-time [`Self::max_gap_m`] and the change detection's, which act on later scans
+    /// only (what a detector holds, returns and challengers, is not checkpointed).
     pub fn same_cells_as(&self, other: &WorldParams) -> bool {
         *self
             == WorldParams {
                 max_gap_m: self.max_gap_m,
+                change_detection: self.change_detection,
+                change_gate_sigmas: self.change_gate_sigmas,
+                change_floor_m: self.change_floor_m,
+                change_confirm_scans: self.change_confirm_scans,
                 ..*other
             }
     }
