@@ -79,10 +79,7 @@ impl WorldAggregate {
         // ground within a correlation length of data counts: beyond it the surface is the
         // tiles' smooth continuation, and a ray must not stop on it.
         let reach = self.params.length_scale;
-        let known = |x: f64, y: f64| {
-            self.nearest_cell_within(x, y, reach)?;
-            self.blend(x, y)
-        };
+        let known = |x: f64, y: f64| self.within(x, y, reach).map(|(e, _)| e);
         let gap = |t: f64| {
             let p = point(t);
             known(p.x, p.y).map(|e| e.z - p.z)
@@ -90,8 +87,7 @@ impl WorldAggregate {
         let samples = ((max_range / (0.5 * self.params.cell_m)).ceil() as usize).clamp(8, 4000);
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let hit = point(root.t);
-            let datum_m = self.nearest_cell_within(hit.x, hit.y, reach)?;
-            let e = self.blend(hit.x, hit.y)?;
+            let (e, datum_m) = self.within(hit.x, hit.y, reach)?;
             let provenance = provenance_of(datum_m, self.params.length_scale);
             let f = sd_factor(&hit);
             let step = 0.25 * self.params.cell_m;
@@ -146,8 +142,13 @@ impl WorldAggregate {
 
     /// The height at (x, y) where a fused cell lies within `max_gap_m`.
     pub(super) fn estimate(&self, x: f64, y: f64) -> Option<HeightEstimate> {
-        self.nearest_cell(x, y)?;
-        self.blend(x, y)
+        self.within(x, y, self.params.max_gap_m).map(|(e, _)| e)
+    }
+
+    /// The height at (x, y) where a fused cell lies within `reach_m`, with that cell's distance.
+    fn within(&self, x: f64, y: f64, reach_m: f64) -> Option<(HeightEstimate, f64)> {
+        let datum_m = self.nearest_cell_within(x, y, reach_m)?;
+        self.blend(x, y).map(|e| (e, datum_m))
     }
 
     /// The tiles at (x, y) blended with a partition of unity (mean and variance of the mixture).
