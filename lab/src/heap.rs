@@ -14,7 +14,12 @@
 //!
 //! fn main() {
 //!     rangegp_lab::heap::register(&HEAP);
-//!     assert!(rangegp_lab::heap::live_bytes().is_some_and(|b| b > 0));
+//!     // This example runs as its own single-threaded process, so the count is exact.
+//!     let before = rangegp_lab::heap::live_bytes().expect("registered");
+//!     let block = vec![1u8; 64 << 20];
+//!     assert_eq!(rangegp_lab::heap::live_bytes(), Some(before + (64 << 20)));
+//!     drop(block);
+//!     assert_eq!(rangegp_lab::heap::live_bytes(), Some(before));
 //! }
 //! ```
 
@@ -47,35 +52,4 @@ pub fn live_bytes() -> Option<usize> {
 /// [`live_bytes`] in MiB.
 pub fn live_mib() -> Option<f64> {
     live_bytes().map(|b| b as f64 / (1024.0 * 1024.0))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[global_allocator]
-    static HEAP: Counting = counting();
-
-    #[test]
-    fn an_allocation_is_counted_until_it_is_freed() {
-        register(&HEAP);
-        // Other tests of this binary allocate concurrently, so the 64 MiB is looked for with a
-        // margin of a quarter either way.
-        let mib = (1u64 << 20) as f64;
-        let now = || live_bytes().map(|b| b as f64).unwrap_or(f64::NAN);
-        let before = now();
-        let block = vec![1u8; 64 << 20];
-        let during = now();
-        assert!(block.iter().all(|&b| b == 1));
-        drop(block);
-        let after = now();
-        assert!(
-            (during - before - 64.0 * mib).abs() < 16.0 * mib,
-            "{before} → {during}"
-        );
-        assert!(
-            (during - after - 64.0 * mib).abs() < 16.0 * mib,
-            "{during} → {after}"
-        );
-    }
 }
