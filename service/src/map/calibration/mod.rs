@@ -1,9 +1,10 @@
 //! Prequential σ calibration: each new scan tests the maps as they stood before it arrived.
 //!
-//! A stratified sample of the scan's returns is answered by [`query::raw_elevation`] over the
-//! snapshot from before the scan. Each return is a fresh, independent measurement of ground the
-//! maps already claim to know, so its residual against the answer, with the return's own noise
-//! taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
+//! A stratified sample of the scan's returns, each taken as the mean of the returns within 5 cm
+//! of it on its surface (a k-th of one return's noise, the same map error), is answered by
+//! [`query::raw_elevation`] over the snapshot from before the scan. Each return is a fresh,
+//! independent measurement of ground the maps already claim to know, so its residual against the
+//! answer, with the returns' own noise taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
 //! area their return stands for and kept per (source, level class, grazing class, range bin from
 //! the answering sensor; for the aggregate, from the sensors that fused the cells there, and its
 //! grazing class from how squarely their rays met them) over the last scans. The aggregate is

@@ -6,6 +6,7 @@ use crate::map::scales::{bin_of, BINS};
 use crate::map::LocalRangeMap;
 use crate::scan::ScanInput;
 use nalgebra::Vector3;
+use std::collections::HashMap;
 
 /// Step of the finite differences that give a return's surface normal, radians (0.1°).
 const NORMAL_STEP_RAD: f64 = 1.745e-3;
@@ -13,14 +14,25 @@ const NORMAL_STEP_RAD: f64 = 1.745e-3;
 /// return grazing the surface at under 3° counts as if at 3°).
 const MIN_COS_INCIDENCE: f64 = 0.05;
 
+/// A sampled return: its map point, its noise variance along z (m²) and the ground area it
+/// stands for ([`area_weight`]).
+pub(super) type Sampled = (Vector3<f64>, f64, f64);
+
+/// Horizontal radius of the patch of a scan's returns whose mean stands for a sampled return,
+/// metres: well inside the correlation lengths of the maps' errors the calibrator learns
+/// (0.19–0.82 m, docs/EVALUATION.md "Planner layers"), so the patch shares its map's error, while
+/// its returns' noises, independent, average down.
+pub(super) const PATCH_RADIUS_M: f64 = 0.05;
+
 /// Up to [`PER_BIN_PER_SCAN`] returns of `scan` per range bin from `reference` (a sensor position),
-/// spread over the scan by a stride coprime with its size; each as a map point, its noise
-/// variance along z and the ground area it stands for ([`area_weight`]).
+/// spread over the scan by a stride coprime with its size; each as the mean map point of its
+/// patch ([`patch_means`]), that mean's noise variance along z and the ground area the return
+/// stands for ([`area_weight`]).
 pub(super) fn stratified_sample(
     scan: &ScanInput,
     map: &LocalRangeMap,
     reference: &Vector3<f64>,
-) -> Vec<(Vector3<f64>, f64, f64)> {
+) -> Vec<Sampled> {
     let n = scan.rays.len();
     let mut quota = [PER_BIN_PER_SCAN; BINS];
     let mut out = Vec::with_capacity(BINS * PER_BIN_PER_SCAN);
@@ -48,7 +60,59 @@ pub(super) fn stratified_sample(
             break;
         }
     }
+    patch_means(scan, &mut out);
     out
+}
+
+/// Replaces each sampled return of `sample` (map point, noise variance along z, weight) by the
+/// mean of the returns of `scan` within [`PATCH_RADIUS_M`] of it horizontally and on its surface
+/// (heights within the radius plus three noise σ of both: a 45° bound, so a patch at a step
+/// keeps the sampled return's side), with the mean's noise variance. Near the sensor a return's
+/// noise can be several times the map's error, and a test of single returns then cannot tell a
+/// map right from one too sure; the mean of k returns has a k-th of the noise and the same map
+/// error.
+pub(super) fn patch_means(scan: &ScanInput, sample: &mut [Sampled]) {
+    let r = PATCH_RADIUS_M;
+    let key = |p: &Vector3<f64>| ((p.x / r).floor() as i64, (p.y / r).floor() as i64);
+    let mut near: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (i, (p, _, _)) in sample.iter().enumerate() {
+        let (x, y) = key(p);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                near.entry((x + dx, y + dy)).or_default().push(i);
+            }
+        }
+    }
+    // Per sampled return: the sum of its patch's offsets from it, of their noise variances, and
+    // their count.
+    let mut sums = vec![(Vector3::zeros(), 0.0, 0usize); sample.len()];
+    let origin = scan.pose.translation.vector;
+    for ray in &scan.rays {
+        let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+        let dir = scan.pose.rotation * Vector3::new(x, y, z);
+        let q = origin + dir * ray.range;
+        let Some(ids) = near.get(&key(&q)) else {
+            continue;
+        };
+        let sd = (scan.range_sd(ray.range) * dir.z).abs();
+        for &i in ids {
+            let (p, noise_var, _) = sample[i];
+            let d = q - p;
+            if d.xy().norm() <= r && d.z.abs() <= r + 3.0 * (noise_var.sqrt() + sd) {
+                let s = &mut sums[i];
+                s.0 += d;
+                s.1 += sd * sd;
+                s.2 += 1;
+            }
+        }
+    }
+    for ((p, noise_var, _), (offsets, var_sum, k)) in sample.iter_mut().zip(sums) {
+        if k > 1 {
+            let k = k as f64;
+            *p += offsets / k;
+            *noise_var = var_sum / (k * k);
+        }
+    }
 }
 
 /// The ground-plane area a return stands for per unit solid angle: r² · |n_z| / |cos i|, where n

@@ -1,10 +1,10 @@
 use super::factors::scale_of;
-use super::sample::coprime_stride;
+use super::sample::{coprime_stride, patch_means, Sampled, PATCH_RADIUS_M};
 use super::*;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
 use crate::map::scales::{BinScale, SIGMA_GROUPS};
-use crate::map::test_support::{family_terrain, params, scan_of};
+use crate::map::test_support::{family_terrain, params, scan_by, scan_of};
 use crate::map::Window;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use rangegp_sim::Heightmap;
@@ -582,4 +582,95 @@ fn a_restarted_calibrator_keeps_each_learnt_part_until_it_has_relearnt_it() {
     assert!(prior.learnt.correlation && now.learnt.correlation);
     assert_eq!(now.correlation, prior.correlation);
     assert_ne!(fresh_now.correlation, prior.correlation);
+}
+
+/// Every `every`-th return of `scan` whose horizontal distance from the sensor lies in `band`
+/// (metres), as the sampler gives them: map point, noise variance along z, weight 1.
+fn returns_in(scan: &ScanInput, band: (f64, f64), every: usize) -> Vec<Sampled> {
+    let origin = scan.pose.translation.vector;
+    scan.rays
+        .iter()
+        .filter_map(|ray| {
+            let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+            let dir = scan.pose.rotation * Vector3::new(x, y, z);
+            let p = origin + dir * ray.range;
+            let rho = (p.x - origin.x).hypot(p.y - origin.y);
+            let sd = scan.range_sd(ray.range) * dir.z;
+            (band.0..band.1).contains(&rho).then_some((p, sd * sd, 1.0))
+        })
+        .step_by(every)
+        .collect()
+}
+
+/// An OS1-64 with its device's noise, 0.75 m above `terrain` at the origin.
+fn os1_64_scan(terrain: &Heightmap) -> ScanInput {
+    let preset = rangegp_sim::ScannerPreset::os1_64(1024).with_device_noise();
+    scan_by(&preset, terrain, Isometry3::translation(0.0, 0.0, 0.75))
+}
+
+#[test]
+fn a_patch_mean_has_a_fraction_of_a_returns_noise_and_claims_no_less_than_it_has() {
+    let terrain = Heightmap::flat(40.0, 0.05, 0.0);
+    let scan = os1_64_scan(&terrain);
+    let singles = returns_in(&scan, (2.0, 8.0), 37);
+    assert!(singles.len() > 300, "{} returns", singles.len());
+    let mut means = singles.clone();
+    patch_means(&scan, &mut means);
+    // Mean claimed noise variance, and mean square height.
+    let claimed = |v: &[Sampled]| v.iter().map(|r| r.1).sum::<f64>() / v.len() as f64;
+    let found = |v: &[Sampled]| v.iter().map(|r| r.0.z * r.0.z).sum::<f64>() / v.len() as f64;
+    // The ground is at 0: a return's height is its noise.
+    assert!(
+        claimed(&means) < claimed(&singles) / 3.0,
+        "{} against {}",
+        claimed(&means),
+        claimed(&singles)
+    );
+    for (v, what) in [(&singles, "single returns"), (&means, "patch means")] {
+        let ratio = found(v) / claimed(v);
+        assert!(
+            (0.7..1.4).contains(&ratio),
+            "{what}: mean square {ratio} × the noise claimed"
+        );
+    }
+    assert!(means
+        .iter()
+        .zip(&singles)
+        .all(|(m, s)| (m.0.xy() - s.0.xy()).norm() <= PATCH_RADIUS_M));
+}
+
+#[test]
+fn a_patch_at_a_step_keeps_its_returns_side() {
+    // A box 0.3 m high whose face stands 2.5 m in front of the sensor: the ground at its foot and
+    // the face above it lie within a patch of each other.
+    let terrain = Heightmap::flat(40.0, 0.05, 0.0).with_box(3.0, 0.0, [0.5, 2.0], 0.3);
+    let scan = os1_64_scan(&terrain);
+    let foot: Vec<_> = returns_in(&scan, (2.0, 3.0), 1)
+        .into_iter()
+        .filter(|(p, _, _)| p.x > 2.5 - PATCH_RADIUS_M && p.x < 2.49 && p.y.abs() < 1.5 && p.z < 0.02)
+        .collect();
+    assert!(foot.len() > 20, "{} returns at the foot", foot.len());
+    // The face's returns lie within a patch of the foot's: a mean over every return within
+    // the radius would rise well above the ground.
+    let all = returns_in(&scan, (2.0, 3.0), 1);
+    let unguarded = foot
+        .iter()
+        .map(|(p, _, _)| {
+            let within: Vec<f64> = all
+                .iter()
+                .filter(|(q, _, _)| (q.xy() - p.xy()).norm() <= PATCH_RADIUS_M)
+                .map(|(q, _, _)| q.z)
+                .collect();
+            within.iter().sum::<f64>() / within.len() as f64
+        })
+        .fold(f64::MIN, f64::max);
+    assert!(
+        unguarded > 0.1,
+        "the face reaches no patch at its foot ({unguarded} m)"
+    );
+    let mut means = foot.clone();
+    patch_means(&scan, &mut means);
+    // Within the radius plus three noise σ of both returns (about 3 cm here) of its side.
+    let worst = means.iter().map(|(p, _, _)| p.z).fold(f64::MIN, f64::max);
+    assert!(worst < 0.08, "a patch at the foot of the face rose to {worst} m");
 }
