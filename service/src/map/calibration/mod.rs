@@ -4,8 +4,8 @@
 //! of it on its surface (a k-th of one return's noise, the same map error), is answered by
 //! [`query::raw_elevation`] over the snapshot from before the scan. Each return is a fresh,
 //! independent measurement of ground the maps already claim to know, so its residual against the
-//! answer, with the returns' own noise taken out, tells how wide the answer's σ should have been. Residuals are weighted by the ground
-//! area their return stands for and kept per (source, level class, grazing class, range bin from
+//! answer, with the returns' own noise taken out, tells how wide the answer's σ should have been.
+//! Residuals are weighted by the ground area their return stands for and kept per (source, level class, grazing class, range bin from
 //! the answering sensor; for the aggregate, from the sensors that fused the cells there, and its
 //! grazing class from how squarely their rays met them) over the last scans. The aggregate is
 //! also tested, at half weight, on every return a window map answers; within a cell, each fifth
@@ -31,7 +31,6 @@ use super::scales::{
 };
 use super::window::MapSnapshot;
 use super::LocalRangeMap;
-use crate::gp::sphere;
 use crate::scan::ScanInput;
 use nalgebra::Vector3;
 use rangegp_proto::msg::Source;
@@ -44,7 +43,7 @@ mod sample;
 pub use prior::{check, under_settings};
 
 use factors::{departure_weights_of, table_of, with_departure};
-use sample::stratified_sample;
+use sample::{map_return, stratified_sample, Sampled};
 
 /// Default weight of the other window maps' disagreement in a window answer's variance far from
 /// its data (`gp.view_disagreement`; chosen on the full calibration matrix among 0.3 and 0.5,
@@ -302,22 +301,13 @@ impl Calibrator {
     /// Pairs of `scan`'s returns a footprint apart ([`PAIR_SEPARATION_M`]), each sampled return
     /// with the nearest other return in that band, both answered by `snapshot` (the maps before
     /// the scan) with σ calibrated by the current scales.
-    fn pairs(
-        &self,
-        snapshot: &MapSnapshot,
-        scan: &ScanInput,
-        sample: &[(Vector3<f64>, f64, f64)],
-    ) -> Vec<PairResidual> {
+    fn pairs(&self, snapshot: &MapSnapshot, scan: &ScanInput, sample: &[Sampled]) -> Vec<PairResidual> {
         let cell = PAIR_SEPARATION_M.1;
         let key = |p: &Vector3<f64>| ((p.x / cell).floor() as i64, (p.y / cell).floor() as i64);
-        let origin = scan.pose.translation.vector;
         let mut cells: HashMap<(i64, i64), Vec<Return>> = HashMap::new();
         for ray in &scan.rays {
-            let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
-            let dir = scan.pose.rotation * Vector3::new(x, y, z);
-            let p = origin + dir * ray.range;
-            let sd = scan.range_sd(ray.range) * dir.z;
-            cells.entry(key(&p)).or_default().push((p, sd * sd));
+            let (p, noise_var) = map_return(scan, ray);
+            cells.entry(key(&p)).or_default().push((p, noise_var));
         }
         let partner = |p: &Vector3<f64>| -> Option<Return> {
             let (i, j) = key(p);

@@ -1,10 +1,10 @@
 //! Which returns of a scan test the maps, and the ground area each stands for.
 
-use super::PER_BIN_PER_SCAN;
+use super::{Return, PER_BIN_PER_SCAN};
 use crate::gp::sphere;
 use crate::map::scales::{bin_of, BINS};
 use crate::map::LocalRangeMap;
-use crate::scan::ScanInput;
+use crate::scan::{RayObservation, ScanInput};
 use nalgebra::Vector3;
 use std::collections::HashMap;
 
@@ -40,22 +40,18 @@ pub(super) fn stratified_sample(
         return out;
     }
     let stride = coprime_stride(n);
-    let origin = scan.pose.translation.vector;
     let mut k = (scan.sequence as usize).wrapping_mul(2_654_435_761) % n;
     for _ in 0..n {
         let ray = &scan.rays[k];
         k = (k + stride) % n;
-        let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
-        let dir = scan.pose.rotation * Vector3::new(x, y, z);
-        let p = origin + dir * ray.range;
+        let (p, noise_var) = map_return(scan, ray);
         let bin = bin_of((p.x - reference.x).hypot(p.y - reference.y));
         if quota[bin] == 0 {
             continue;
         }
         quota[bin] -= 1;
-        let sd = scan.range_sd(ray.range) * dir.z;
         let weight = area_weight(scan, map, ray.inclination, ray.azimuth, ray.range);
-        out.push((p, sd * sd, weight));
+        out.push((p, noise_var, weight));
         if quota.iter().all(|&q| q == 0) {
             break;
         }
@@ -86,22 +82,18 @@ pub(super) fn patch_means(scan: &ScanInput, sample: &mut [Sampled]) {
     // Per sampled return: the sum of its patch's offsets from it, of their noise variances, and
     // their count.
     let mut sums = vec![(Vector3::zeros(), 0.0, 0usize); sample.len()];
-    let origin = scan.pose.translation.vector;
     for ray in &scan.rays {
-        let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
-        let dir = scan.pose.rotation * Vector3::new(x, y, z);
-        let q = origin + dir * ray.range;
+        let (q, q_var) = map_return(scan, ray);
         let Some(ids) = near.get(&key(&q)) else {
             continue;
         };
-        let sd = (scan.range_sd(ray.range) * dir.z).abs();
         for &i in ids {
             let (p, noise_var, _) = sample[i];
             let d = q - p;
-            if d.xy().norm() <= r && d.z.abs() <= r + 3.0 * (noise_var.sqrt() + sd) {
+            if d.xy().norm() <= r && d.z.abs() <= r + 3.0 * (noise_var.sqrt() + q_var.sqrt()) {
                 let s = &mut sums[i];
                 s.0 += d;
-                s.1 += sd * sd;
+                s.1 += q_var;
                 s.2 += 1;
             }
         }
@@ -113,6 +105,14 @@ pub(super) fn patch_means(scan: &ScanInput, sample: &mut [Sampled]) {
             *noise_var = var_sum / (k * k);
         }
     }
+}
+
+/// Return `ray` of `scan` in the map frame, with its range noise's variance along z (m²).
+pub(super) fn map_return(scan: &ScanInput, ray: &RayObservation) -> Return {
+    let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
+    let dir = scan.pose.rotation * Vector3::new(x, y, z);
+    let sd = scan.range_sd(ray.range) * dir.z;
+    (scan.pose.translation.vector + dir * ray.range, sd * sd)
 }
 
 /// The ground-plane area a return stands for per unit solid angle: r² · |n_z| / |cos i|, where n

@@ -1,5 +1,5 @@
 use super::factors::scale_of;
-use super::sample::{coprime_stride, patch_means, Sampled, PATCH_RADIUS_M};
+use super::sample::{coprime_stride, patch_means, PATCH_RADIUS_M};
 use super::*;
 use crate::map::aggregate::world::{WorldAggregate, WorldParams};
 use crate::map::aggregate::Aggregate;
@@ -591,12 +591,9 @@ fn returns_in(scan: &ScanInput, band: (f64, f64), every: usize) -> Vec<Sampled> 
     scan.rays
         .iter()
         .filter_map(|ray| {
-            let [x, y, z] = sphere::to_sphere(ray.inclination, ray.azimuth, 1.0);
-            let dir = scan.pose.rotation * Vector3::new(x, y, z);
-            let p = origin + dir * ray.range;
+            let (p, noise_var) = map_return(scan, ray);
             let rho = (p.x - origin.x).hypot(p.y - origin.y);
-            let sd = scan.range_sd(ray.range) * dir.z;
-            (band.0..band.1).contains(&rho).then_some((p, sd * sd, 1.0))
+            (band.0..band.1).contains(&rho).then_some((p, noise_var, 1.0))
         })
         .step_by(every)
         .collect()
