@@ -233,10 +233,9 @@ impl TilePage {
                 None => points.remove(&c),
             };
         }
-        // As in memory, a tile a correction edited forgets how its cells were seen.
-        if edits.iter().any(|&(c, _)| tile_of(c, n) == self.key) {
-            self.seen.clear();
-        }
+        // As in memory, a cell a correction edited forgets how it was seen.
+        let edited: BTreeSet<(i32, i32)> = edits.iter().map(|&(c, _)| c).collect();
+        self.seen.retain(|(c, _)| !edited.contains(c));
         self.cells = cells.into_iter().collect();
         self.points = points
             .iter()

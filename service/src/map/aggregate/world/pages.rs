@@ -34,6 +34,9 @@ impl WorldAggregate {
                 continue;
             }
             applied.cells_changed += 1;
+            // How the cell was seen moved with the scans whose evidence moved; a cell no edit
+            // names keeps its views, and its record.
+            self.seen_from.remove(&c);
             let own = self.tile_of(c);
             edited_tiles.insert(own);
             let covering: Vec<(i32, i32)> = self.tiles_covering(c).collect();
@@ -59,8 +62,6 @@ impl WorldAggregate {
         self.returns
             .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         self.challengers
-            .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
-        self.seen_from
             .retain(|&c, _| !edited_tiles.contains(&tile_of(c, n)));
         applied.tiles_refitted = dirty.len();
         self.refit(dirty)?;

@@ -178,6 +178,36 @@ mod tests {
     }
 
     #[test]
+    fn a_correction_forgets_how_the_cells_it_edits_were_seen_and_no_others() {
+        use crate::map::aggregate::ledger::CellEdit;
+        let terrain = Heightmap::flat(60.0, 0.05, 0.0);
+        let mut agg = WorldAggregate::new(WorldParams::default());
+        fold(&mut agg, &terrain, 0.0, 0.0, 0.0);
+        let edited = agg.cell_of(3.0, 0.3);
+        let kept = (edited.0 + 1, edited.1);
+        assert_eq!(agg.tile_of(edited), agg.tile_of(kept), "the premise: one tile");
+        // At a cell's centre the record is that cell's alone (the fallback where it has none).
+        let seen = |agg: &WorldAggregate, c: (i32, i32)| {
+            let (x, y) = agg.centre(c);
+            agg.seen_at(x, y, 99.0).distance_m
+        };
+        let before = seen(&agg, kept);
+        assert!(
+            before < 5.0 && seen(&agg, edited) < 5.0,
+            "the premise: both were seen"
+        );
+        let lift = CellEdit {
+            precision: 1e4,
+            weighted_z: 1e3,
+            scans: 1,
+        };
+        let edits = std::collections::HashMap::from([(edited, lift)]);
+        agg.apply_edits(edits, &|_| false).expect("refit");
+        assert_eq!(seen(&agg, edited), 99.0);
+        assert_eq!(seen(&agg, kept), before);
+    }
+
+    #[test]
     fn a_cell_seen_only_at_a_shadows_edge_keeps_its_views_grazing() {
         let mut agg = WorldAggregate::new(WorldParams::default());
         let c = (40, 3);

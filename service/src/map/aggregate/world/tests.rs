@@ -236,7 +236,7 @@ fn a_scan_refits_only_the_tiles_it_touches() {
 }
 
 #[test]
-fn a_page_forgets_how_its_cells_were_seen_only_when_a_correction_edits_one_of_them() {
+fn a_page_forgets_how_a_cell_was_seen_only_when_a_correction_edits_it() {
     let params = WorldParams::default();
     let n = params.tile_cells;
     let cell = Cell {
@@ -260,10 +260,10 @@ fn a_page_forgets_how_its_cells_were_seen_only_when_a_correction_edits_one_of_th
     let mut margin = page.clone();
     margin.apply_edits(&[((n, 1), lift)], &params);
     assert_eq!(margin.seen, page.seen);
-    // An edit of one of its own cells forgets them all, as a tile in memory does.
+    // An edit of one of its own cells forgets that cell's record alone, as in memory.
     let mut own = page.clone();
     own.apply_edits(&[((2, 1), lift)], &params);
-    assert!(own.seen.is_empty());
+    assert_eq!(own.seen, vec![((1, 1), [3.0, 0.5])]);
 }
 
 #[test]
@@ -478,7 +478,7 @@ fn a_correction_moves_drifted_scans_onto_the_map_the_true_poses_make() {
         assert!((o.z - cell.z).abs() < 1e-9 && (o.var - cell.var).abs() < 1e-12 && o.scans == cell.scans);
     }
     assert_eq!(restored.len(), wrong.len());
-    // A tile a correction edited forgets how its cells were seen, on disk as in memory.
+    // A cell a correction edited forgets how it was seen, on disk as in memory.
     assert!(
         had_records,
         "the premise: the pages held how their cells were seen"
