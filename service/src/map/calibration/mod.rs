@@ -1,26 +1,26 @@
 //! Prequential σ calibration: each new scan tests the maps as they stood before it arrived.
 //!
-//! A stratified sample of the scan's returns, each taken as the mean of the returns within 5 cm
-//! of it on its surface (a k-th of one return's noise, the same map error), is answered by
+//! A stratified sample of the scan's returns, each taken as the mean of the returns within 5 cm of
+//! it on its surface (a k-th of one return's noise, the same map error), is answered by
 //! [`query::raw_elevation`] over the snapshot from before the scan. Each return is a fresh,
 //! independent measurement of ground the maps already claim to know, so its residual against the
 //! answer, with the returns' own noise taken out, tells how wide the answer's σ should have been.
-//! Residuals are weighted by the ground area their return stands for and kept per (source, level class, grazing class, range bin from
-//! the answering sensor; for the aggregate, from the sensors that fused the cells there, and its
-//! grazing class from how squarely their rays met them) over the last scans. The aggregate is
-//! also tested, at half weight, on every return a window map answers; within a cell, each fifth
-//! of them by the answer's own σ gets the factor on σ whose 68 % and 95 % intervals cover that
-//! share. The level class
+//! Residuals are weighted by the ground area their return stands for and kept per (source, level
+//! class, grazing class, range bin from the answering sensor; for the aggregate, from the sensors
+//! that fused the cells there, and its grazing class from how squarely their rays met them) over
+//! the last scans. The aggregate is also tested, at half weight, on every return a window map
+//! answers; within a cell, each fifth of them by the answer's own σ gets the factor on σ whose 68 %
+//! and 95 % intervals cover that share. The level class
 //! ([`HeightEstimate::rise`](super::local::HeightEstimate::rise)) tells ground off the robot's
-//! level from level ground, which err differently at the same range. Before the factors, each
-//! range bin learns how much an answer's departure from its map's nearest data
+//! level from level ground, which err differently at the same range. Before the factors, each range
+//! bin learns how much an answer's departure from its map's nearest data
 //! ([`HeightEstimate::departure`](super::local::HeightEstimate::departure)) counts in its own
-//! variance ([`factors::departure_weights_of`]). Nothing here knows the
-//! terrain or the sensor: it adapts to whatever the robot drives on, and follows it when the
-//! terrain changes (the oldest residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every
-//! [`PAIR_EVERY_SCANS`] scans, pairs of returns a footprint apart also measure how the maps'
-//! errors correlate ([`super::correlation`]), and the held residuals give the errors' tail shape
-//! ([`TailShape`]): what planner layers turn height σ into slope σ and risks with.
+//! variance ([`factors::departure_weights_of`]). Nothing here knows the terrain or the sensor: it
+//! adapts to whatever the robot drives on, and follows it when the terrain changes (the oldest
+//! residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every [`PAIR_EVERY_SCANS`]
+//! scans, pairs of returns a footprint apart also measure how the maps' errors correlate
+//! ([`super::correlation`]), and the held residuals give the errors' tail shape ([`TailShape`]):
+//! what planner layers turn height σ into slope σ and risks with.
 
 use super::correlation::{CorrelationLearner, PairResidual, PAIR_SEPARATION_M};
 use super::query::{self, Answerer};
