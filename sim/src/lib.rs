@@ -8,6 +8,7 @@
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
+pub mod dem;
 pub mod drift;
 pub mod family;
 pub mod path;
@@ -16,6 +17,7 @@ pub mod sensor;
 pub mod terrain;
 pub mod trajectory;
 
+pub use dem::{Dem, DemError};
 pub use drift::OdometryDrift;
 pub use family::{family, TerrainKind, TerrainSpec};
 pub use path::{level_pose, Path};

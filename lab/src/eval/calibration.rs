@@ -9,7 +9,8 @@
 //! true height by range band (distance from the last sensor position) and by the source that
 //! answered (window or aggregate); points that no scan could see (occluded, or outside every
 //! field of view) form a band of their own, where a refusal is the right answer. With `--ends`
-//! the drive goes on and the same is done at several places along it, pooled per cell.
+//! the drive goes on and the same is done at several places along it, pooled per cell. With
+//! `--dem` the terrain is a digital elevation model from a file instead of the family.
 
 use super::drive::{map_drive, Drive, MappedDrive};
 use super::scores::{Sample, Scores};
@@ -22,8 +23,7 @@ use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
 use rangegp_service::config::Config;
 use rangegp_service::map::{query, MapSnapshot};
-use rangegp_sim::family::FAMILY_SIZE_M;
-use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
+use rangegp_sim::{Heightmap, ScannerPreset};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
@@ -255,7 +255,7 @@ pub fn write_reliability_pictures(report: &CalibrationReport, out: &Path) -> Res
 /// One cell of the calibration matrix.
 #[derive(Debug, Clone, Serialize)]
 pub struct Cell {
-    /// Terrain of the family.
+    /// Terrain: a member of the family, or the DEM's name.
     pub terrain: String,
     /// Sensor preset.
     pub sensor: String,
@@ -345,14 +345,7 @@ struct Bin {
 
 /// Runs the matrix.
 pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
-    let terrains: Vec<TerrainSpec> = if opts.quick {
-        family()
-            .into_iter()
-            .filter(|t| ["craters", "fbm-h05-16deg", "boulders"].contains(&t.name.as_str()))
-            .collect()
-    } else {
-        family()
-    };
+    let scenes = opts.scenes(&["craters", "fbm-h05-16deg", "boulders"]);
     // The devices' own noise: a floor their headers cannot state, which the daemon must learn.
     let sensors = [
         ScannerPreset::seed000(),
@@ -361,19 +354,20 @@ pub fn run_calibration(opts: &FamilyOptions) -> Result<CalibrationReport> {
     ]
     .map(|p| opts.mounted(p));
     let mut cells = Vec::new();
-    for spec in &terrains {
-        eprintln!("calibration: terrain {} …", spec.name);
-        let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
+    for scene in &scenes {
+        let name = scene.name();
+        eprintln!("calibration: terrain {name} …");
+        let terrain = scene.build(opts.seed);
         for preset in &sensors {
             let bins = run_one(&terrain, preset, opts)?;
             for ((band, source), bin) in bins {
                 if bin.samples.is_empty() {
                     // Every point refused (right for occluded ground): a cell of refusals.
-                    cells.push(Cell::refusals(&spec.name, preset.name, band, source, bin.refused));
+                    cells.push(Cell::refusals(name, preset.name, band, source, bin.refused));
                 } else if let Some(s) = Scores::of(&bin.samples) {
                     let (sd_factor95, one_factor_reaches) = one_factor(&bin.samples);
                     cells.push(Cell {
-                        terrain: spec.name.clone(),
+                        terrain: name.to_owned(),
                         sensor: preset.name.to_owned(),
                         band: band.to_owned(),
                         source: source.to_owned(),

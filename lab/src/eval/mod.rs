@@ -11,6 +11,7 @@ pub mod layers;
 pub mod local;
 pub mod overhang;
 pub mod progress;
+pub mod scene;
 pub mod scores;
 pub mod sitemap;
 pub mod split;
@@ -99,6 +100,37 @@ pub struct EvalOptions {
     /// a robot whose mount the defaults do not know.
     #[arg(long, value_parser = mount_of)]
     pub mount_m: Option<f64>,
+    /// A digital elevation model (ESRI ASCII grid, `.asc`) the calibration and layers
+    /// evaluations run on instead of the sim family: its central square, centred on the origin,
+    /// north up (docs/EVALUATION.md "Real geography").
+    #[arg(long)]
+    pub dem: Option<PathBuf>,
+    /// The DEM's cell size for the run, metres (default: the file's `cellsize`, taken as
+    /// metres; a grid in degrees needs it).
+    #[arg(long, requires = "dem", value_parser = cell_of)]
+    pub dem_cell_m: Option<f64>,
+    /// Factor on the DEM's heights about their mean (default 1). A landscape shrunk to a
+    /// rover's scale keeps its slopes with the ratio of `--dem-cell-m` to the true cell size.
+    #[arg(long, requires = "dem", value_parser = relief_of)]
+    pub dem_relief: Option<f64>,
+}
+
+/// Parses `--dem-cell-m`: a finite cell size in [0.01, 100] m.
+fn cell_of(s: &str) -> std::result::Result<f64, String> {
+    metres(
+        s,
+        |v| (0.01..=100.0).contains(&v),
+        "the cell size must lie in [0.01, 100] m",
+    )
+}
+
+/// Parses `--dem-relief`: a finite factor in (0, 100].
+fn relief_of(s: &str) -> std::result::Result<f64, String> {
+    metres(
+        s,
+        |v| v > 0.0 && v <= 100.0,
+        "the relief factor must lie in (0, 100]",
+    )
 }
 
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
@@ -189,6 +221,10 @@ pub struct OverhangSummary {
 
 /// Runs the selected experiments, prints their tables, writes summary.json.
 pub fn run(opts: &EvalOptions) -> Result<Summary> {
+    anyhow::ensure!(
+        opts.dem.is_none() || matches!(opts.experiment, Experiment::Calibration | Experiment::Layers),
+        "--dem applies to the calibration and layers evaluations only"
+    );
     if opts.experiment == Experiment::Calibration {
         return run_calibration_experiment(opts);
     }
@@ -322,6 +358,8 @@ pub struct FamilyOptions {
     pub ends: usize,
     /// Sensor height above the ground in those drives, metres (`None`: each preset's own).
     pub mount_m: Option<f64>,
+    /// The DEM the calibration and layers evaluations run on instead of the family (`--dem`).
+    pub dem: Option<scene::DemTerrain>,
 }
 
 impl FamilyOptions {
@@ -336,7 +374,14 @@ impl FamilyOptions {
             scans: None,
             ends: 1,
             mount_m: None,
+            dem: None,
         }
+    }
+
+    /// The terrains of a calibration or layers run: the DEM, else the family (with `--quick`,
+    /// the members named in `quick_names`).
+    pub fn scenes(&self, quick_names: &[&str]) -> Vec<scene::Scene<'_>> {
+        scene::scenes(self.dem.as_ref(), self.quick, quick_names)
     }
 
     /// `preset` mounted at `--mount-m` when given.
@@ -366,6 +411,10 @@ impl FamilyOptions {
             scans: opts.scans.map(usize::from),
             ends: usize::from(opts.ends),
             mount_m: opts.mount_m,
+            dem: match &opts.dem {
+                Some(path) => Some(scene::DemTerrain::load(path, opts.dem_cell_m, opts.dem_relief)?),
+                None => None,
+            },
         })
     }
 }
@@ -454,6 +503,45 @@ mod tests {
             (1, 5, 1)
         );
         assert!(parse(&["--ends", "0"]).is_err(), "no place to score");
+    }
+
+    #[test]
+    fn a_dem_is_taken_by_calibration_and_layers_only_and_its_scales_need_it() {
+        let parse = |args: &[&str]| EvalOptions::try_parse_from(["rangegp-eval"].iter().chain(args));
+        let opts = parse(&[
+            "layers",
+            "--dem",
+            "x.asc",
+            "--dem-cell-m",
+            "0.25",
+            "--dem-relief",
+            "0.5",
+        ])
+        .expect("parsed");
+        assert_eq!((opts.dem_cell_m, opts.dem_relief), (Some(0.25), Some(0.5)));
+        assert!(
+            parse(&["calibration", "--dem-cell-m", "0.25"]).is_err(),
+            "a cell size alone"
+        );
+        assert!(
+            parse(&["calibration", "--dem-relief", "2"]).is_err(),
+            "a relief alone"
+        );
+        for bad in ["0", "-1", "nan", "1000"] {
+            assert!(
+                parse(&["layers", "--dem", "x.asc", "--dem-relief", bad]).is_err(),
+                "{bad}"
+            );
+            assert!(
+                parse(&["layers", "--dem", "x.asc", "--dem-cell-m", bad]).is_err(),
+                "{bad}"
+            );
+        }
+        let world = parse(&["world", "--dem", "x.asc"]).expect("parsed");
+        let refused = run(&world).expect_err("world runs on its own scenes");
+        assert!(refused.to_string().contains("--dem"), "{refused}");
+        let missing = FamilyOptions::of(&opts).expect_err("no such file");
+        assert!(format!("{missing:#}").contains("x.asc"), "{missing:#}");
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! they claim, on terrain the defaults were never tuned on, and does a planner on the cost layer
 //! stay on ground the robot can drive?
 //!
-//! For each terrain of the sim family and sensor, a robot drives a short path mapped as the
+//! For each terrain of the sim family (or the DEM given with `--dem`) and sensor, a robot drives a short path mapped as the
 //! daemon maps it ([`super::drive`]); a grid of every layer around the last pose is answered by
 //! the daemon's own grid code ([`grid::grid`]) and scored against the same layers computed from
 //! the terrain's true heights on the same cells and footprint (σ 0). A cell is truly
@@ -18,8 +18,7 @@ use anyhow::Result;
 use rangegp_proto::msg::{Layer, RobotModel};
 use rangegp_service::map::grid::{self, GridBox};
 use rangegp_service::map::layers::LayerModel;
-use rangegp_sim::family::FAMILY_SIZE_M;
-use rangegp_sim::{family, Heightmap, ScannerPreset, TerrainSpec};
+use rangegp_sim::{Heightmap, ScannerPreset};
 use serde::Serialize;
 use std::path::Path;
 
@@ -78,7 +77,7 @@ pub const OVERCONFIDENT_SHARE_OF_LIMIT: f64 = 0.25;
 /// One terrain × sensor.
 #[derive(Debug, Clone, Serialize)]
 pub struct LayerCase {
-    /// Terrain of the family.
+    /// Terrain: a member of the family, or the DEM's name.
     pub terrain: String,
     /// Sensor preset.
     pub sensor: String,
@@ -209,15 +208,7 @@ struct Pool {
 
 /// Runs the layer evaluation; pictures go to `out`.
 pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
-    let names: &[&str] = if opts.quick {
-        &["craters", "fbm-h05-30deg", "boulders"]
-    } else {
-        &[]
-    };
-    let terrains: Vec<TerrainSpec> = family()
-        .into_iter()
-        .filter(|t| names.is_empty() || names.contains(&t.name.as_str()))
-        .collect();
+    let terrains = opts.scenes(&["craters", "fbm-h05-30deg", "boulders"]);
     let sensors: Vec<ScannerPreset> = if opts.quick {
         vec![ScannerPreset::vlp16()]
     } else {
@@ -236,11 +227,11 @@ pub fn run_layers(opts: &FamilyOptions, out: &Path) -> Result<LayersReport> {
     let mut cases = Vec::new();
     let (mut path_cells, mut unsafe_cells, mut ratios, mut no_path) = (0, 0, Vec::new(), 0);
     let mut predicted_unsafe = 0.0;
-    for spec in &terrains {
-        let terrain = spec.build(opts.seed, FAMILY_SIZE_M);
+    for scene in &terrains {
+        let terrain = scene.build(opts.seed);
         for preset in &sensors {
-            eprintln!("layers: {} with {} …", spec.name, preset.name);
-            let (case, case_pool) = run_case(&terrain, spec, preset, robot, opts, pairs_per_case)?;
+            eprintln!("layers: {} with {} …", scene.name(), preset.name);
+            let (case, case_pool) = run_case(&terrain, scene.name(), preset, robot, opts, pairs_per_case)?;
             path_cells += case.path_cells[0];
             unsafe_cells += case.path_cells[1];
             predicted_unsafe += case.path_predicted_unsafe_cells;
@@ -355,7 +346,7 @@ pub fn failures(r: &LayersReport) -> Vec<String> {
 /// One terrain and sensor: drive, grid, score, plan.
 fn run_case(
     terrain: &Heightmap,
-    spec: &TerrainSpec,
+    name: &str,
     preset: &ScannerPreset,
     robot: RobotModel,
     opts: &FamilyOptions,
@@ -467,12 +458,12 @@ fn run_case(
         &reply,
         &truth,
         pairs,
-        seed ^ spec.name.len() as u64 ^ preset.name.len() as u64,
+        seed ^ name.len() as u64 ^ preset.name.len() as u64,
     );
     let plan = &plans[PLANNER_WEIGHT];
     let scored = pool.slope_err2.len();
     let case = LayerCase {
-        terrain: spec.name.clone(),
+        terrain: name.to_owned(),
         sensor: preset.name.to_owned(),
         cells: scored,
         slope_rmse_deg: rms(&pool.slope_err2),
