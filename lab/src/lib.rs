@@ -2,7 +2,7 @@
 //!
 //! - [`demo`]: the daemon on embedded defaults with a simulated rover and planner.
 //! - [`eval`]: accuracy and calibration against simulated ground truth (`rangegp-eval`).
-//! - [`bench`]: GP, hyperparameter and query benchmarks (`rangegp-bench`).
+//! - [`bench`](mod@bench): GP, hyperparameter and query benchmarks (`rangegp-bench`).
 //! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
 //! - [`scangen`]: simulated scans in the wire layout.
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.

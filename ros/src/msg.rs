@@ -191,7 +191,7 @@ pub struct Pose {
     pub orientation: Quaternion,
 }
 
-/// A row-major 6 × 6 covariance (float64[36]: CDR writes it without a length).
+/// A row-major 6 × 6 covariance (`float64[36]`: CDR writes it without a length).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Covariance(pub [f64; 36]);
 

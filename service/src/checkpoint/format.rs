@@ -10,7 +10,7 @@
 //! | 8 | xxh3-64 of every byte before it |
 //!
 //! Paged-out tiles ([`super::pages`]) use the same frame with the magic `RGPTILE\0` and a
-//! [`super::pages::TilePage`] payload.
+//! [`TilePage`](crate::map::aggregate::world::TilePage) payload.
 
 use super::format3::{self, CheckpointV3};
 use super::format4::{self, CheckpointV4};

@@ -1,6 +1,6 @@
 //! Durable checkpoints of the world aggregate (docs/OPERATIONS.md "Checkpoints").
 //!
-//! - [`format`]: the file layout — magic, format version, identity hash, length, bincode
+//! - [`format`](mod@format): the file layout — magic, format version, identity hash, length, bincode
 //!   payload, xxh3 checksum — and its one encode / decode pair.
 //! - [`store`]: generations on disk, written atomically (temp file, fsync, rename, fsync of the
 //!   directory), the newest valid one restored.

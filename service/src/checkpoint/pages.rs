@@ -18,7 +18,7 @@ use thiserror::Error;
 pub const PAGE_MAGIC: [u8; 8] = *b"RGPTILE\0";
 /// Layout version of a tile page; bumped when [`TilePage`] changes (apart from checkpoints',
 /// so that a checkpoint change leaves the pages of the site map on disk readable; 4: how the
-/// cells were seen). Format-3 pages are read too ([`decode_page`]).
+/// cells were seen). Format-3 pages are read too (`decode_page`).
 pub const PAGE_FORMAT_VERSION: u32 = 4;
 /// The page layout before the cells' seen-from records.
 const PAGE_FORMAT_3: u32 = 3;

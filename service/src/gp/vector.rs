@@ -2,7 +2,7 @@
 //! kernel families, and the forward substitution of the posterior variance.
 //!
 //! On x86-64 with AVX2 and FMA (checked at run time, so one binary still runs on robot computers
-//! without them) they use 256-bit intrinsics and the exp of [`avx`]; elsewhere `wide`'s portable
+//! without them) they use 256-bit intrinsics and the exp of `avx`; elsewhere `wide`'s portable
 //! f64x4 (SSE2 or NEON) and plain loops. Measured (docs/ARCHITECTURE.md): a 128-input Matérn sum
 //! takes about a third of the time of the portable path.
 

@@ -33,7 +33,7 @@ const CHI2_1_MEDIAN: f64 = 0.454_936;
 /// The range noise floor, metres (at most [`MAX_FLOOR_M`]), that the returns of `points` show
 /// beyond the header's `range_noise_per_m` (σ(r)² = floor² + (k·r)²); only returns in
 /// (0, `max_range_m`) count, as for the map. `None` when the driver gives no ring and column
-/// indices, when its indices span more than [`MAX_CELLS_PER_RETURN`] cells per return, or when
+/// indices, when its indices span more than `MAX_CELLS_PER_RETURN` cells per return, or when
 /// fewer than [`MIN_TRIPLES`] returns have two returned neighbours each side along their ring.
 pub fn range_noise_floor(points: &[ScanPoint], range_noise_per_m: f64, max_range_m: f64) -> Option<f64> {
     let returns: Vec<(usize, usize, f64)> = points

@@ -39,7 +39,7 @@ pub struct DataIndex {
 
 impl DataIndex {
     /// The index of `points` (non-finite ones are left out): buckets of a quarter of the points'
-    /// mean horizontal spacing, at most [`MAX_BUCKETS`] of them.
+    /// mean horizontal spacing, at most `MAX_BUCKETS` of them.
     pub fn new(points: &[[f64; 3]]) -> Self {
         let finite: Vec<[f64; 3]> = points
             .iter()

@@ -234,7 +234,7 @@ fn widening(own: f64, widened: f64) -> f64 {
     }
 }
 
-/// Elevation at (x, y): [`blended_elevation`], each map's σ scaled by the snapshot's calibration
+/// Elevation at (x, y): `blended_elevation`, each map's σ scaled by the snapshot's calibration
 /// ([`super::calibration`]) before the two are mixed (mean and variance of the mixture, which
 /// counts their disagreement as uncertainty). An answer whose σ exceeds the snapshot's
 /// `max_sigma_m` is refused `too_uncertain`: a number that wide would claim knowledge the maps do

@@ -49,7 +49,7 @@ impl ReliefLearner {
     /// a correction may have moved since) places them, against the index of the returns it
     /// trained on: for each of up to [`ANCHORS_PER_SCAN`] returns p and each distance bin's centre
     /// c, the returns nearest p ± c·u (u a direction turning with each try), if within
-    /// [`PARTNER_TOLERANCE`]·c of those points and on either side of p.
+    /// `PARTNER_TOLERANCE`·c of those points and on either side of p.
     pub fn observe(&mut self, scan: &ScanInput, map: &LocalRangeMap) {
         let n = scan.rays.len();
         if n == 0 {

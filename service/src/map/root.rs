@@ -51,7 +51,7 @@ const TRACE_OVERSHOOT: f64 = 1.5;
 
 /// The first t in [t0, t1] where `gap` turns non-negative, stepping from t0 by what the gap
 /// itself says of the distance left: `ahead(t, gap(t))` is the estimated signed distance to the
-/// crossing (positive in free space), stepped [`TRACE_OVERSHOOT`] times over and clamped to
+/// crossing (positive in free space), stepped `TRACE_OVERSHOOT` times over and clamped to
 /// [`min_step`, `max_step`] (`max_step` after an unobserved point), then refined as
 /// [`first_crossing`] does, on the estimates. Where the gap measures the distance to a surface
 /// the step lands near it at once, so a long stretch of free space costs a few evaluations

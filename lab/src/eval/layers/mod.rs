@@ -3,7 +3,7 @@
 //! stay on ground the robot can drive?
 //!
 //! For each terrain of the sim family (or the DEM given with `--dem`) and sensor, a robot drives a short path mapped as the
-//! daemon maps it ([`super::drive`]); a grid of every layer around the last pose is answered by
+//! daemon maps it (`super::drive`); a grid of every layer around the last pose is answered by
 //! the daemon's own grid code ([`grid::grid`]) and scored against the same layers computed from
 //! the terrain's true heights on the same cells and footprint (σ 0). A cell is truly
 //! untraversable when its true slope or true step exceeds the robot's limit. Planning: A* over

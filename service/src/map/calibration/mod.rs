@@ -15,7 +15,7 @@
 //! level from level ground, which err differently at the same range. Before the factors, each range
 //! bin learns how much an answer's departure from its map's nearest data
 //! ([`HeightEstimate::departure`](super::local::HeightEstimate::departure)) counts in its own
-//! variance ([`factors::departure_weights_of`]). Nothing here knows the terrain or the sensor: it
+//! variance (`factors::departure_weights_of`). Nothing here knows the terrain or the sensor: it
 //! adapts to whatever the robot drives on, and follows it when the terrain changes (the oldest
 //! residuals drop out). Figures: docs/EVALUATION.md "Calibration". Every [`PAIR_EVERY_SCANS`]
 //! scans, pairs of returns a footprint apart also measure how the maps' errors correlate
