@@ -131,7 +131,7 @@ void rangegp_client_close(struct RangegpClient *client);
 
 /**
  * Opens a publisher on the daemon's iceoryx2 scan service `service` (the daemon's
- * `ingest.service_name`, by default "rangegp/<map id>/scans") as `publisher_id`, for scans of
+ * `ingest.service_name`, by default `"rangegp/<map id>/scans"`) as `publisher_id`, for scans of
  * at most `max_points` rays; `*out` receives the handle.
  *
  * # Safety

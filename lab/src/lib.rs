@@ -5,6 +5,8 @@
 //! - [`bench`](mod@bench): GP, hyperparameter and query benchmarks (`rangegp-bench`).
 //! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
 //! - [`scangen`]: simulated scans in the wire layout.
+//! - [`dem`]: terrains from digital elevation model files (`--dem`), for the evaluations and
+//!   the scan generator.
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
 //! - [`plot`]: the one renderer of every picture (demo, grid, evaluation).
 //! - [`pictures`]: a grid's layers and a view's ranges as pictures (`rangegp query ... --png`).
@@ -16,6 +18,7 @@
 
 pub mod bench;
 pub mod certs;
+pub mod dem;
 pub mod demo;
 pub mod eval;
 pub mod fleet;

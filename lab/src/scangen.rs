@@ -73,7 +73,18 @@ impl ScanGenerator {
     /// A cratered world of `size_m` metres from `seed`, with a wander path of `scans` poses
     /// `step_m` apart.
     pub fn new(seed: u64, size_m: f64, preset: ScannerPreset, scans: usize, step_m: f64) -> Self {
-        let terrain = Heightmap::cratered(seed, &CraterParams::sized(size_m));
+        Self::on(
+            Heightmap::cratered(seed, &CraterParams::sized(size_m)),
+            seed,
+            preset,
+            scans,
+            step_m,
+        )
+    }
+
+    /// The same on `terrain` (a DEM, say): a wander path from `seed` of `scans` poses `step_m`
+    /// apart.
+    pub fn on(terrain: Heightmap, seed: u64, preset: ScannerPreset, scans: usize, step_m: f64) -> Self {
         let path = Path::wander(seed ^ 0x5eed, &terrain, scans, step_m, 0.25);
         Self {
             terrain,

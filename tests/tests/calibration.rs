@@ -8,8 +8,8 @@
 //! unseen relief adds, pooled over the same seeds). The last runs the quick matrix on a DEM read
 //! from a file, relief the family does not have (`--dem`, "Real geography").
 
+use rangegp_lab::dem::DemTerrain;
 use rangegp_lab::eval::calibration::{quick_regressions, run_calibration, run_quick_calibration, BANDS};
-use rangegp_lab::eval::scene::DemTerrain;
 use rangegp_lab::eval::FamilyOptions;
 use rangegp_service::config::Config;
 

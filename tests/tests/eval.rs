@@ -19,9 +19,7 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         scans: None,
         ends: 1,
         mount_m: None,
-        dem: None,
-        dem_cell_m: None,
-        dem_relief: None,
+        dem: Default::default(),
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;
     let pictures = [

@@ -4,6 +4,7 @@
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::dem::DemArgs;
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
 use rangegp_lab::replay::{self, ReplayOptions};
@@ -213,6 +214,9 @@ enum Command {
         /// Metres between scans.
         #[arg(long, default_value_t = 1.0)]
         step_m: f64,
+        /// A DEM to drive on instead of the cratered terrain.
+        #[command(flatten)]
+        dem: DemArgs,
         /// Compress chunks with zstd.
         #[arg(long)]
         zstd: bool,
@@ -237,6 +241,9 @@ enum Command {
         /// Metres between scans.
         #[arg(long, default_value_t = 1.0)]
         step_m: f64,
+        /// A DEM to drive on instead of the cratered terrain.
+        #[command(flatten)]
+        dem: DemArgs,
         /// Publisher id in the scan header.
         #[arg(long, default_value_t = 1)]
         publisher_id: u64,
@@ -525,11 +532,12 @@ fn main() -> Result<()> {
             rate_hz,
             seed,
             step_m,
+            dem,
             zstd,
         } => {
             let preset = preset_named(&preset)?;
             anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
-            let mut world = ScanGenerator::new(seed, 100.0, preset, count, step_m);
+            let mut world = generator(&dem, seed, preset, count, step_m)?;
             let t0 = now_ns();
             let period_ns = (1e9 / rate_hz) as u64;
             let scans: Vec<_> = (0..count)
@@ -550,12 +558,13 @@ fn main() -> Result<()> {
             rate_hz,
             seed,
             step_m,
+            dem,
             publisher_id,
         } => {
             let preset = preset_named(&preset)?;
             anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
             let rays = preset.ray_count();
-            let mut world = ScanGenerator::new(seed, 100.0, preset, count, step_m);
+            let mut world = generator(&dem, seed, preset, count, step_m)?;
             let mut publisher = ScanPublisher::new(&service, publisher_id, rays)?;
             let period = Duration::from_secs_f64(1.0 / rate_hz);
             for i in 0..count {
@@ -568,4 +577,26 @@ fn main() -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The scan generator of `scangen` and `record-sim`: on the DEM `--dem` names, else on a 100 m
+/// cratered world from `seed`.
+fn generator(
+    dem: &DemArgs,
+    seed: u64,
+    preset: ScannerPreset,
+    count: usize,
+    step_m: f64,
+) -> Result<ScanGenerator> {
+    Ok(match dem.load()? {
+        Some(dem) => {
+            eprintln!(
+                "terrain: {} ({:.1} m a side)",
+                dem.name,
+                2.0 * dem.map.half_extent()
+            );
+            ScanGenerator::on(dem.map, seed, preset, count, step_m)
+        }
+        None => ScanGenerator::new(seed, 100.0, preset, count, step_m),
+    })
 }

@@ -100,37 +100,9 @@ pub struct EvalOptions {
     /// a robot whose mount the defaults do not know.
     #[arg(long, value_parser = mount_of)]
     pub mount_m: Option<f64>,
-    /// A digital elevation model (ESRI ASCII grid, `.asc`) the calibration and layers
-    /// evaluations run on instead of the sim family: its central square, centred on the origin,
-    /// north up (docs/EVALUATION.md "Real geography").
-    #[arg(long)]
-    pub dem: Option<PathBuf>,
-    /// The DEM's cell size for the run, metres (default: the file's `cellsize`, taken as
-    /// metres; a grid in degrees needs it).
-    #[arg(long, requires = "dem", value_parser = cell_of)]
-    pub dem_cell_m: Option<f64>,
-    /// Factor on the DEM's heights about their mean (default 1). A landscape shrunk to a
-    /// rover's scale keeps its slopes with the ratio of `--dem-cell-m` to the true cell size.
-    #[arg(long, requires = "dem", value_parser = relief_of)]
-    pub dem_relief: Option<f64>,
-}
-
-/// Parses `--dem-cell-m`: a finite cell size in [0.01, 100] m.
-fn cell_of(s: &str) -> std::result::Result<f64, String> {
-    metres(
-        s,
-        |v| (0.01..=100.0).contains(&v),
-        "the cell size must lie in [0.01, 100] m",
-    )
-}
-
-/// Parses `--dem-relief`: a finite factor in (0, 100].
-fn relief_of(s: &str) -> std::result::Result<f64, String> {
-    metres(
-        s,
-        |v| v > 0.0 && v <= 100.0,
-        "the relief factor must lie in (0, 100]",
-    )
+    /// A DEM to run the calibration and layers evaluations on instead of the sim family.
+    #[command(flatten)]
+    pub dem: crate::dem::DemArgs,
 }
 
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
@@ -222,7 +194,7 @@ pub struct OverhangSummary {
 /// Runs the selected experiments, prints their tables, writes summary.json.
 pub fn run(opts: &EvalOptions) -> Result<Summary> {
     anyhow::ensure!(
-        opts.dem.is_none() || matches!(opts.experiment, Experiment::Calibration | Experiment::Layers),
+        opts.dem.dem.is_none() || matches!(opts.experiment, Experiment::Calibration | Experiment::Layers),
         "--dem applies to the calibration and layers evaluations only"
     );
     if opts.experiment == Experiment::Calibration {
@@ -359,7 +331,7 @@ pub struct FamilyOptions {
     /// Sensor height above the ground in those drives, metres (`None`: each preset's own).
     pub mount_m: Option<f64>,
     /// The DEM the calibration and layers evaluations run on instead of the family (`--dem`).
-    pub dem: Option<scene::DemTerrain>,
+    pub dem: Option<crate::dem::DemTerrain>,
 }
 
 impl FamilyOptions {
@@ -411,10 +383,7 @@ impl FamilyOptions {
             scans: opts.scans.map(usize::from),
             ends: usize::from(opts.ends),
             mount_m: opts.mount_m,
-            dem: match &opts.dem {
-                Some(path) => Some(scene::DemTerrain::load(path, opts.dem_cell_m, opts.dem_relief)?),
-                None => None,
-            },
+            dem: opts.dem.load()?,
         })
     }
 }
@@ -518,7 +487,10 @@ mod tests {
             "0.5",
         ])
         .expect("parsed");
-        assert_eq!((opts.dem_cell_m, opts.dem_relief), (Some(0.25), Some(0.5)));
+        assert_eq!(
+            (opts.dem.dem_cell_m, opts.dem.dem_relief),
+            (Some(0.25), Some(0.5))
+        );
         assert!(
             parse(&["calibration", "--dem-cell-m", "0.25"]).is_err(),
             "a cell size alone"
