@@ -53,8 +53,8 @@ fn relief_of(s: &str) -> std::result::Result<f64, String> {
     )
 }
 
-/// A finite number that `ok` accepts, else `why`.
-fn within(s: &str, ok: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f64, String> {
+/// A finite number that `ok` accepts, else `why` (the lab's CLIs parse their numbers with it).
+pub(crate) fn within(s: &str, ok: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
     if v.is_finite() && ok(v) {
         Ok(v)
@@ -63,14 +63,15 @@ fn within(s: &str, ok: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f
     }
 }
 
-/// Smallest side a DEM terrain may have, metres: the drives wander up to 15 m from the origin
-/// before turning back, and the near range bands (to 20 m) must lie on the map around them.
+/// Smallest side a DEM terrain may have, metres: the drives turn back 15 m from its edge, so a
+/// 60 m square leaves them 15 m to wander from the centre with their 0–10 m range bands on the
+/// map (farther bands are scored on the part of them that is).
 pub const MIN_DEM_SIDE_M: f64 = 60.0;
 
 /// A terrain from a DEM file, ready to drive on.
 #[derive(Debug, Clone)]
 pub struct DemTerrain {
-    /// Name in reports: the file's stem, with the relief factor when it is not 1.
+    /// Name in reports: the file's stem, with the cell size and the relief factor when given.
     pub name: String,
     /// The terrain (the DEM's central square, centred on the origin).
     pub map: Heightmap,
@@ -91,15 +92,19 @@ impl DemTerrain {
             "--dem {}: its central square is {} cells of {} m, {side:.1} m a side; the drives need \
              at least {MIN_DEM_SIDE_M} m (a grid in degrees or at a rover's scale needs --dem-cell-m)",
             path.display(),
-            dem.shape().0.min(dem.shape().1),
+            dem.shape().0.min(dem.shape().1) - 1,
             map.resolution(),
         );
-        let stem = path.file_stem().map_or("dem".into(), |s| s.to_string_lossy());
-        let name = if relief == 1.0 {
-            stem.into_owned()
-        } else {
-            format!("{stem}-x{}", three_figures(relief))
-        };
+        let mut name = path
+            .file_stem()
+            .map_or("dem".into(), |s| s.to_string_lossy())
+            .into_owned();
+        if let Some(cell) = cell_m {
+            name.push_str(&format!("-c{}", three_figures(cell)));
+        }
+        if relief != 1.0 {
+            name.push_str(&format!("-x{}", three_figures(relief)));
+        }
         Ok(Self { name, map })
     }
 }
@@ -143,7 +148,7 @@ pub(crate) mod tests {
         assert!(rise.is_some_and(|(n, c)| (n - c - 1.0).abs() < 1e-6), "{rise:?}");
         // Shrunk to 1.5 m cells with the slope kept (relief 0.75): still 1 in 10.
         let shrunk = DemTerrain::load(&path, Some(1.5), Some(0.75))?;
-        assert_eq!(shrunk.name, "ramp-x0.75");
+        assert_eq!(shrunk.name, "ramp-c1.5-x0.75");
         let rise = shrunk.map.height(0.0, 10.0).zip(shrunk.map.height(0.0, 0.0));
         assert!(rise.is_some_and(|(n, c)| (n - c - 1.0).abs() < 1e-5), "{rise:?}");
         let small = DemTerrain::load(&path, Some(1.0), None).expect_err("40 m is too small");

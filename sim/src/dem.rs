@@ -21,7 +21,10 @@ pub enum DemError {
         source: std::io::Error,
     },
     /// A header every ASCII grid carries is missing.
-    #[error("the header has no `{0}` line (an ESRI ASCII grid starts ncols, nrows, xllcorner, yllcorner, cellsize)")]
+    #[error(
+        "the header has no `{0}` line (an ESRI ASCII grid starts ncols, nrows, xllcorner, \
+         yllcorner, cellsize)"
+    )]
     MissingHeader(&'static str),
     /// A header's value is not a number of the kind it needs.
     #[error("header `{key}` has the value `{value}`, which is not a {want}")]
@@ -33,9 +36,17 @@ pub enum DemError {
         /// What it must be.
         want: &'static str,
     },
-    /// The grid's cells are not square (`dx` and `dy` headers).
+    /// The grid's cells are not square (`dx` and `dy` headers that differ, or both kinds).
     #[error("the grid's cells are not square (dx / dy headers): resample it to square cells first")]
     NonSquareCells,
+    /// The header asks for more cells than [`MAX_CELLS`].
+    #[error("the grid is {ncols} × {nrows} cells, more than {MAX_CELLS}: crop or resample it first")]
+    TooLarge {
+        /// Columns.
+        ncols: usize,
+        /// Rows.
+        nrows: usize,
+    },
     /// A header this reader does not know.
     #[error("unknown header `{0}`")]
     UnknownHeader(String),
@@ -85,6 +96,13 @@ pub enum DemError {
     },
 }
 
+/// The value that marks a cell without data when the header names none (the format's default).
+pub const DEFAULT_NODATA: f64 = -9999.0;
+
+/// Most cells a grid may hold (a 7 000 × 7 000 grid), so that a header cannot ask for more memory
+/// than a lab machine has.
+pub const MAX_CELLS: usize = 50_000_000;
+
 /// A grid of heights read from a file: row 0 is the northernmost, column 0 the westernmost.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Dem {
@@ -109,9 +127,12 @@ impl Dem {
     /// Parses the text of an ESRI ASCII grid.
     pub fn parse(text: &str) -> Result<Self, DemError> {
         let mut tokens = text.split_ascii_whitespace().peekable();
-        let (mut ncols, mut nrows, mut cell, mut nodata) = (None, None, None, None);
+        let (mut ncols, mut nrows, mut cell, mut dx, mut dy) = (None, None, None, None, None);
+        // Without a NODATA_value line the format's default holds.
+        let mut nodata = DEFAULT_NODATA;
         let (mut xll, mut yll) = (false, false);
-        while let Some(key) = tokens.next_if(|t| t.starts_with(|c: char| c.is_ascii_alphabetic())) {
+        // Header keys are words; the body starts at the first number (`nan` and `inf` included).
+        while let Some(key) = tokens.next_if(|t| t.parse::<f64>().is_err()) {
             let key = key.to_ascii_lowercase();
             let value = tokens.next().unwrap_or_default();
             let bad = |want| DemError::BadHeader {
@@ -127,27 +148,39 @@ impl Dem {
                     .filter(|v| v.is_finite())
                     .ok_or_else(|| bad("finite number"))
             };
+            let size = || {
+                number()
+                    .ok()
+                    .filter(|&c| c > 0.0)
+                    .ok_or_else(|| bad("positive number"))
+            };
             match key.as_str() {
                 "ncols" => ncols = Some(count()?),
                 "nrows" => nrows = Some(count()?),
                 "xllcorner" | "xllcenter" => xll = number().map(|_| true)?,
                 "yllcorner" | "yllcenter" => yll = number().map(|_| true)?,
-                "cellsize" => {
-                    cell = Some(
-                        number()
-                            .ok()
-                            .filter(|&c| c > 0.0)
-                            .ok_or_else(|| bad("positive number"))?,
-                    )
+                "cellsize" => cell = Some(size()?),
+                "dx" => dx = Some(size()?),
+                "dy" => dy = Some(size()?),
+                "nodata_value" => {
+                    nodata = value
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|v| !v.is_infinite())
+                        .ok_or_else(|| bad("number or nan"))?
                 }
-                "nodata_value" => nodata = Some(number()?),
-                "dx" | "dy" => return Err(DemError::NonSquareCells),
                 _ => return Err(DemError::UnknownHeader(key)),
             }
         }
         let ncols = ncols.ok_or(DemError::MissingHeader("ncols"))?;
         let nrows = nrows.ok_or(DemError::MissingHeader("nrows"))?;
-        let cell = cell.ok_or(DemError::MissingHeader("cellsize"))?;
+        let cell = match (cell, dx, dy) {
+            (Some(cell), None, None) => cell,
+            // GDAL writes dx and dy instead of cellsize; equal ones are square cells.
+            (None, Some(dx), Some(dy)) if (dx - dy).abs() <= 1e-9 * dx.max(dy) => dx,
+            (None, None, None) => return Err(DemError::MissingHeader("cellsize")),
+            _ => return Err(DemError::NonSquareCells),
+        };
         if !xll {
             return Err(DemError::MissingHeader("xllcorner"));
         }
@@ -157,7 +190,10 @@ impl Dem {
         if ncols < 3 || nrows < 3 {
             return Err(DemError::TooSmall { ncols, nrows });
         }
-        let expected = ncols * nrows;
+        let expected = ncols
+            .checked_mul(nrows)
+            .filter(|&n| n <= MAX_CELLS)
+            .ok_or(DemError::TooLarge { ncols, nrows })?;
         let body: Vec<&str> = tokens.collect();
         if body.len() != expected {
             return Err(DemError::WrongCount {
@@ -165,19 +201,24 @@ impl Dem {
                 found: body.len(),
             });
         }
+        // GDAL may write the header's value to more digits than the body's.
+        let is_nodata = |v: f64| match nodata.is_nan() {
+            true => v.is_nan(),
+            false => (v - nodata).abs() <= 1e-6 * nodata.abs().max(1.0),
+        };
         let mut z = Vec::with_capacity(expected);
         for (index, text) in body.into_iter().enumerate() {
             let v = text
                 .parse::<f64>()
                 .ok()
-                .filter(|v| v.is_finite())
-                .ok_or_else(|| DemError::BadHeight {
-                    index,
-                    row: index / ncols,
-                    column: index % ncols,
-                    text: text.to_owned(),
-                })?;
-            z.push((Some(v) != nodata).then_some(v));
+                .filter(|&v| v.is_finite() || is_nodata(v));
+            let v = v.ok_or_else(|| DemError::BadHeight {
+                index,
+                row: index / ncols,
+                column: index % ncols,
+                text: text.to_owned(),
+            })?;
+            z.push((!is_nodata(v)).then_some(v));
         }
         Ok(Self {
             ncols,
@@ -190,11 +231,6 @@ impl Dem {
     /// Columns and rows.
     pub fn shape(&self) -> (usize, usize) {
         (self.ncols, self.nrows)
-    }
-
-    /// Cell size as the file states it.
-    pub fn cell(&self) -> f64 {
-        self.cell
     }
 
     /// The central square of the grid as a terrain centred on (0, 0), north along +y: cells of
@@ -237,11 +273,10 @@ mod tests {
     fn a_grid_is_read_north_row_first_and_its_central_square_put_north_up() {
         let dem = Dem::parse(GRID).expect("parses");
         assert_eq!(dem.shape(), (4, 3));
-        assert_eq!(dem.cell(), 2.0);
         // The central 3 × 3 square is columns 0–2 (one column left over, dropped from the east
         // by the floor of the half), rows 0–2; mean 6, relief 0.5.
         let map = dem.heightmap(None, 0.5).expect("a terrain");
-        assert_eq!(map.half_extent(), 2.0);
+        assert_eq!((map.resolution(), map.half_extent()), (2.0, 2.0));
         // South-west corner: row 2 (southernmost), column 0 = 9 → (9 − 6) × 0.5.
         assert_eq!(map.height(-2.0, -2.0), Some(1.5));
         // North-east corner of the square: row 0, column 2 = 3 → −1.5.
@@ -262,10 +297,38 @@ mod tests {
     }
 
     #[test]
+    fn the_header_variants_gis_tools_write_are_read() {
+        let centred = GRID
+            .replace("xllcorner", "XLLCENTER")
+            .replace("yllcorner", "yllcenter");
+        assert!(Dem::parse(&centred).is_ok());
+        let gdal = Dem::parse(&GRID.replace("cellsize 2", "dx 2\ndy 2")).expect("square dx, dy");
+        assert_eq!(gdal.heightmap(None, 1.0).map(|m| m.resolution()).ok(), Some(2.0));
+        // Without a NODATA_value line, -9999 still marks a cell without data.
+        let holed = GRID
+            .replace("NODATA_value -9999\n", "")
+            .replace(" 11 -9999", " -9999 12");
+        assert!(matches!(
+            Dem::parse(&holed).expect("parses").heightmap(None, 1.0),
+            Err(DemError::NoData { count: 1, .. })
+        ));
+        // NaN as the marker, and a marker written to more digits than the body's.
+        let nan = GRID.replace("-9999", "nan");
+        assert!(Dem::parse(&nan).expect("parses").heightmap(None, 1.0).is_ok());
+        let float = GRID
+            .replace("NODATA_value -9999", "NODATA_value -3.4028234663852886e+38")
+            .replace(" 11 -9999", " -3.4028235e+38 12");
+        assert!(matches!(
+            Dem::parse(&float).expect("parses").heightmap(None, 1.0),
+            Err(DemError::NoData { count: 1, .. })
+        ));
+    }
+
+    #[test]
     fn malformed_grids_are_refused_with_their_reason() {
         /// Whether an error is the one a case expects.
         type Expected = fn(&DemError) -> bool;
-        let cases: [(String, Expected); 7] = [
+        let cases: Vec<(String, Expected)> = vec![
             (GRID.replace("ncols 4\n", ""), |e| {
                 matches!(e, DemError::MissingHeader("ncols"))
             }),
@@ -307,6 +370,16 @@ mod tests {
                     }
                 )
             }),
+            (GRID.replace("yllcorner -5.5\n", ""), |e| {
+                matches!(e, DemError::MissingHeader("yllcorner"))
+            }),
+            (GRID.replace("\n1 2 3 4", "\nnan 2 3 4"), |e| {
+                matches!(e, DemError::BadHeight { index: 0, .. })
+            }),
+            (
+                "ncols 4294967296\nnrows 4294967296\nxllcorner 0\nyllcorner 0\ncellsize 1\n1 2 3".into(),
+                |e| matches!(e, DemError::TooLarge { .. }),
+            ),
         ];
         for (text, expected) in cases {
             let err = Dem::parse(&text).expect_err("refused");

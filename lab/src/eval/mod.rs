@@ -107,7 +107,7 @@ pub struct EvalOptions {
 
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
 fn mount_of(s: &str) -> std::result::Result<f64, String> {
-    metres(
+    crate::dem::within(
         s,
         |v| (0.2..=5.0).contains(&v),
         "the mount height must lie in [0.2, 5] m",
@@ -116,17 +116,7 @@ fn mount_of(s: &str) -> std::result::Result<f64, String> {
 
 /// Parses `--step-m`: a finite step in (0, 5] m.
 fn step_of(s: &str) -> std::result::Result<f64, String> {
-    metres(s, |v| v > 0.0 && v <= 5.0, "the step must lie in (0, 5] m")
-}
-
-/// A finite number of metres that `within` accepts, else `why`.
-fn metres(s: &str, within: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f64, String> {
-    let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
-    if v.is_finite() && within(v) {
-        Ok(v)
-    } else {
-        Err(format!("{s}: {why}"))
-    }
+    crate::dem::within(s, |v| v > 0.0 && v <= 5.0, "the step must lie in (0, 5] m")
 }
 
 /// What `summary.json` holds.
@@ -500,14 +490,11 @@ mod tests {
             "a relief alone"
         );
         for bad in ["0", "-1", "nan", "1000"] {
-            assert!(
-                parse(&["layers", "--dem", "x.asc", "--dem-relief", bad]).is_err(),
-                "{bad}"
-            );
-            assert!(
-                parse(&["layers", "--dem", "x.asc", "--dem-cell-m", bad]).is_err(),
-                "{bad}"
-            );
+            for flag in ["--dem-relief", "--dem-cell-m"] {
+                let refused = parse(&["layers", "--dem", "x.asc", &format!("{flag}={bad}")]);
+                let kind = refused.map(|_| ()).map_err(|e| e.kind());
+                assert_eq!(kind, Err(clap::error::ErrorKind::ValueValidation), "{flag}={bad}");
+            }
         }
         let world = parse(&["world", "--dem", "x.asc"]).expect("parsed");
         let refused = run(&world).expect_err("world runs on its own scenes");

@@ -35,7 +35,7 @@ impl Scene<'_> {
 }
 
 /// The scenes of a run: the DEM alone when one is given, else the family (only the members
-/// named in `quick` when `quick` is set and `quick` is not empty).
+/// named in `quick_names` when `quick` is set).
 pub fn scenes<'a>(dem: Option<&'a DemTerrain>, quick: bool, quick_names: &[&str]) -> Vec<Scene<'a>> {
     match dem {
         Some(dem) => vec![Scene::Dem(dem)],

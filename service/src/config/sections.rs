@@ -96,8 +96,8 @@ pub struct CheckpointConfig {
     /// left behind (the site map). Off: the aggregate starts empty at every start and tiles
     /// beyond `aggregate.radius_m` are forgotten.
     pub enabled: bool,
-    /// Directory of this map's files; unset: the state directory ([`default_state_dir`](super::default_state_dir)) joined
-    /// with the map id.
+    /// Directory of this map's files; unset: the state directory
+    /// ([`default_state_dir`](super::default_state_dir)) joined with the map id.
     pub dir: Option<PathBuf>,
     /// A changed aggregate is written at most this often, milliseconds (and once at shutdown).
     pub interval_ms: u64,

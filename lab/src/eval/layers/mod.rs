@@ -2,14 +2,15 @@
 //! they claim, on terrain the defaults were never tuned on, and does a planner on the cost layer
 //! stay on ground the robot can drive?
 //!
-//! For each terrain of the sim family (or the DEM given with `--dem`) and sensor, a robot drives a short path mapped as the
-//! daemon maps it (`super::drive`); a grid of every layer around the last pose is answered by
-//! the daemon's own grid code ([`grid::grid`]) and scored against the same layers computed from
-//! the terrain's true heights on the same cells and footprint (σ 0). A cell is truly
-//! untraversable when its true slope or true step exceeds the robot's limit. Planning: A* over
-//! the cost layer (lethal and unknown cells blocked, each step's length weighted by 1 + 10 ×
-//! traversal cost) between random start / goal cells, against the oracle: A* over the true
-//! labels on the cells the map observed (where the robot's map could plan at all).
+//! For each terrain of the sim family (or the DEM given with `--dem`) and sensor, a robot drives
+//! a short path mapped as the daemon maps it (`super::drive`); a grid of every layer around the
+//! last pose is answered by the daemon's own grid code ([`grid::grid`]) and scored against the
+//! same layers computed from the terrain's true heights on the same cells and footprint (σ 0). A
+//! cell is truly untraversable when its true slope or true step exceeds the robot's limit.
+//! Planning: A* over the cost layer (lethal and unknown cells blocked, each step's length
+//! weighted by 1 + 10 × traversal cost) between random start / goal cells, against the oracle:
+//! A* over the true labels on the cells the map observed (where the robot's map could plan at
+//! all).
 
 use super::drive::{map_drive, Drive, MappedDrive};
 use super::FamilyOptions;

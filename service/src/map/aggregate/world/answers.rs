@@ -60,8 +60,8 @@ impl WorldAggregate {
     /// first crossing of the ray below the fused heights (sampled every half cell, then
     /// refined), its variance by the delta method through the height's, and the probability of
     /// a hit before `max_range`. Only ground within a correlation length of fused cells counts
-    /// (observed or interpolated), farther than a height is answered ([`WorldParams::max_gap_m`](super::WorldParams::max_gap_m)):
-    /// a ray crossing a gap of a cell or two between known ground must still meet the surface
+    /// (observed or interpolated), farther than a height is answered
+    /// ([`WorldParams::max_gap_m`](super::WorldParams::max_gap_m)): a ray crossing a gap of a cell or two between known ground must still meet the surface
     /// beyond it. `None` when the aggregate knows the ground nowhere along the
     /// ray. Without a crossing, the hit probability is set by the ray's closest approach to the
     /// surface (in σ of the height there), as for a local map; a ray that first meets known
