@@ -218,6 +218,12 @@ pub fn write_reliability_pictures(report: &CalibrationReport, out: &Path) -> Res
     std::fs::create_dir_all(out)?;
     let sensors: BTreeSet<&str> = report.cells.iter().map(|c| c.sensor.as_str()).collect();
     let targets = [(0.68, COV68), (0.95, COV95)];
+    // One terrain (a DEM's) is named; the family's are pooled.
+    let names: BTreeSet<&str> = report.cells.iter().map(|c| c.terrain.as_str()).collect();
+    let terrains = match names.iter().next() {
+        Some(name) if names.len() == 1 => format!("terrain {name}"),
+        _ => format!("{} terrains pooled", if report.quick { "quick" } else { "all" }),
+    };
     let mut files = Vec::new();
     for sensor in sensors {
         let of = |what: &str, keep: &dyn Fn(&Cell) -> bool| {
@@ -241,11 +247,7 @@ pub fn write_reliability_pictures(report: &CalibrationReport, out: &Path) -> Res
         .flatten()
         .collect();
         let file = out.join(format!("calibration_reliability_{sensor}.png"));
-        let title = format!(
-            "Height σ, {sensor}, {} terrains pooled (seed {})",
-            if report.quick { "quick" } else { "all" },
-            report.seed
-        );
+        let title = format!("Height σ, {sensor}, {} (seed {})", terrains, report.seed);
         coverage_chart(&file, &title, &curves, &targets)?;
         files.push(file);
     }
