@@ -125,8 +125,17 @@ pub(crate) mod tests {
     use super::*;
     use crate::demo::TempDir;
 
+    /// [`ramp`]`(41, 2.0)` (80 m a side) written to `ramp.asc` in a directory of its own, named
+    /// after `test`; the directory goes when the returned guard drops.
+    pub(crate) fn ramp_file(test: &str) -> Result<(TempDir, PathBuf)> {
+        let dir = TempDir::new(&format!("{test}-{}", std::process::id()))?;
+        let path = dir.0.join("ramp.asc");
+        std::fs::write(&path, ramp(41, 2.0))?;
+        Ok((dir, path))
+    }
+
     /// An ESRI ASCII grid of `n` × `n` cells of `cell` on a plane rising 1 in 10 to the north.
-    pub(crate) fn ramp(n: usize, cell: f64) -> String {
+    fn ramp(n: usize, cell: f64) -> String {
         let mut text = format!("ncols {n}\nnrows {n}\nxllcorner 0\nyllcorner 0\ncellsize {cell}\n");
         for row in 0..n {
             let z = (n - 1 - row) as f64 * cell * 0.1;
@@ -138,9 +147,7 @@ pub(crate) mod tests {
 
     #[test]
     fn a_dem_file_becomes_a_named_terrain_north_up_or_is_refused_with_its_reason() -> Result<()> {
-        let dir = TempDir::new(&format!("dem-load-{}", std::process::id()))?;
-        let path = dir.0.join("ramp.asc");
-        std::fs::write(&path, ramp(41, 2.0))?;
+        let (dir, path) = ramp_file("dem-load")?;
         let dem = DemTerrain::load(&path, None, None)?;
         assert_eq!(dem.name, "ramp");
         assert_eq!(dem.map.half_extent(), 40.0);
@@ -160,9 +167,7 @@ pub(crate) mod tests {
 
     #[test]
     fn a_scan_generator_drives_on_a_dem() -> Result<()> {
-        let dir = TempDir::new(&format!("dem-scangen-{}", std::process::id()))?;
-        let path = dir.0.join("ramp.asc");
-        std::fs::write(&path, ramp(41, 2.0))?;
+        let (_dir, path) = ramp_file("dem-scangen")?;
         let map = DemTerrain::load(&path, None, None)?.map;
         let preset = rangegp_sim::ScannerPreset::vlp16();
         let mount = preset.mount_height_m;

@@ -247,15 +247,13 @@ impl Dem {
         let side = self.ncols.min(self.nrows);
         let (c0, r0) = ((self.ncols - side) / 2, (self.nrows - side) / 2);
         let at = |row: usize, col: usize| self.z[(r0 + row) * self.ncols + c0 + col];
-        let square: Vec<Option<f64>> = (0..side)
-            .flat_map(|j| (0..side).map(move |i| (j, i)))
-            .map(|(j, i)| at(side - 1 - j, i))
+        let heights: Vec<f64> = (0..side)
+            .flat_map(|j| (0..side).filter_map(move |i| at(side - 1 - j, i)))
             .collect();
-        let count = square.iter().filter(|v| v.is_none()).count();
+        let count = side * side - heights.len();
         if count > 0 {
             return Err(DemError::NoData { count, side });
         }
-        let heights: Vec<f64> = square.into_iter().flatten().collect();
         let mean = heights.iter().sum::<f64>() / heights.len() as f64;
         let z = heights.iter().map(|h| (h - mean) * relief).collect();
         Ok(Heightmap::from_grid((side - 1) as f64 * cell_m, cell_m, z))

@@ -50,15 +50,12 @@ pub fn scenes<'a>(dem: Option<&'a DemTerrain>, quick: bool, quick_names: &[&str]
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dem::tests::ramp;
-    use crate::demo::TempDir;
+    use crate::dem::tests::ramp_file;
     use anyhow::Result;
 
     #[test]
     fn a_dem_replaces_the_family_and_quick_keeps_only_the_named_members() -> Result<()> {
-        let dir = TempDir::new(&format!("dem-scenes-{}", std::process::id()))?;
-        let path = dir.0.join("ramp.asc");
-        std::fs::write(&path, ramp(41, 2.0))?;
+        let (_dir, path) = ramp_file("dem-scenes")?;
         let dem = DemTerrain::load(&path, None, None)?;
         let names = |s: Vec<Scene>| s.iter().map(|s| s.name().to_owned()).collect::<Vec<_>>();
         assert_eq!(names(scenes(Some(&dem), true, &["craters"])), ["ramp"]);
