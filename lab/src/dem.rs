@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::cli::within;
 use anyhow::{Context, Result};
 use rangegp_sim::{Dem, Heightmap};
 
@@ -51,16 +52,6 @@ fn relief_of(s: &str) -> std::result::Result<f64, String> {
         |v| v > 0.0 && v <= 100.0,
         "the relief factor must lie in (0, 100]",
     )
-}
-
-/// A finite number that `ok` accepts, else `why` (the lab's CLIs parse their numbers with it).
-pub(crate) fn within(s: &str, ok: impl Fn(f64) -> bool, why: &str) -> std::result::Result<f64, String> {
-    let v: f64 = s.parse().map_err(|e| format!("{s}: {e}"))?;
-    if v.is_finite() && ok(v) {
-        Ok(v)
-    } else {
-        Err(format!("{s}: {why}"))
-    }
 }
 
 /// Smallest side a DEM terrain may have, metres: the drives turn back 15 m from its edge, so a

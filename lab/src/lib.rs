@@ -5,6 +5,7 @@
 //! - [`bench`](mod@bench): GP, hyperparameter and query benchmarks (`rangegp-bench`).
 //! - [`load`]: the load test behind `rangegp load` (scan generator + planners + echo baseline).
 //! - [`scangen`]: simulated scans in the wire layout.
+//! - [`cli`]: number parsers the command lines share.
 //! - [`dem`]: terrains from digital elevation model files (`--dem`), for the evaluations and
 //!   the scan generator.
 //! - [`certs`]: a CA and certificates for trying the shipped mutual-TLS configuration.
@@ -18,6 +19,7 @@
 
 pub mod bench;
 pub mod certs;
+pub mod cli;
 pub mod dem;
 pub mod demo;
 pub mod eval;

@@ -54,6 +54,8 @@ pub struct ScanGenerator {
     pub path: Path,
     /// Sensor model.
     pub preset: ScannerPreset,
+    /// Side of the chassis the sensor tilts with, metres (`None`: level on any slope).
+    pub chassis_m: Option<f64>,
     seed: u64,
     rng: Pcg64,
 }
@@ -90,8 +92,18 @@ impl ScanGenerator {
             terrain,
             path,
             preset,
+            chassis_m: None,
             seed,
             rng: Pcg64::seed_from_u64(seed ^ 0x0015e),
+        }
+    }
+
+    /// The same with the sensor on a chassis `side_m` square whose wheels rest on the ground, so
+    /// that it tilts with the slopes it drives (`None`: level; [`rangegp_sim::chassis_pose`]).
+    pub fn with_chassis(self, side_m: Option<f64>) -> Self {
+        Self {
+            chassis_m: side_m,
+            ..self
         }
     }
 
@@ -111,10 +123,12 @@ impl ScanGenerator {
             terrain,
             path,
             preset,
+            chassis_m,
             rng,
             ..
         } = self;
-        generate(terrain, path, preset, i, stamp_ns, rng)
+        let pose = path.pose_on(terrain, i, preset.mount_height_m, *chassis_m);
+        generate(terrain, pose, preset, stamp_ns, rng)
     }
 
     /// Simulates the scan at waypoint `i` with noise from a stream of its own, so that scans
@@ -122,20 +136,21 @@ impl ScanGenerator {
     pub fn scan_independent(&self, i: usize, stamp_ns: u64) -> GeneratedScan {
         let stream = (self.seed ^ 0x1dea).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ i as u64;
         let rng = &mut Pcg64::seed_from_u64(stream);
-        generate(&self.terrain, &self.path, &self.preset, i, stamp_ns, rng)
+        let pose = self
+            .path
+            .pose_on(&self.terrain, i, self.preset.mount_height_m, self.chassis_m);
+        generate(&self.terrain, pose, &self.preset, stamp_ns, rng)
     }
 }
 
-/// The scan at waypoint `i` of `path`, noise drawn from `rng`.
+/// The scan from `pose`, noise drawn from `rng`.
 fn generate(
     terrain: &Heightmap,
-    path: &Path,
+    pose: Isometry3<f64>,
     preset: &ScannerPreset,
-    i: usize,
     stamp_ns: u64,
     rng: &mut Pcg64,
 ) -> GeneratedScan {
-    let pose = path.pose(terrain, i, preset.mount_height_m);
     let rays = simulate_scan(terrain, &pose, preset, rng);
     let (header, points) = to_message(preset, &pose, &rays, stamp_ns);
     GeneratedScan { header, points, pose }

@@ -20,7 +20,7 @@ pub mod trajectory;
 pub use dem::{Dem, DemError};
 pub use drift::OdometryDrift;
 pub use family::{family, TerrainKind, TerrainSpec};
-pub use path::{level_pose, Path};
+pub use path::{chassis_pose, level_pose, Path};
 pub use scene::{Surface, Tunnel};
 pub use sensor::{simulate_scan, simulate_sweep, ScannerPreset, SimRay, SweepMotion};
 pub use terrain::{CraterParams, Heightmap};

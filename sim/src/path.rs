@@ -1,7 +1,7 @@
 //! Rover paths: a sequence of sensor poses over a terrain.
 
 use crate::terrain::Heightmap;
-use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use nalgebra::{Isometry3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -41,6 +41,22 @@ impl Path {
         let [x, y, heading] = self.waypoints[i];
         level_pose(terrain, x, y, heading, mount_height_m)
     }
+
+    /// Sensor pose at waypoint `i` on a chassis `chassis_m` long and wide that rests on the
+    /// ground ([`chassis_pose`]), or level ([`Path::pose`]) when `chassis_m` is `None`.
+    pub fn pose_on(
+        &self,
+        terrain: &Heightmap,
+        i: usize,
+        mount_height_m: f64,
+        chassis_m: Option<f64>,
+    ) -> Isometry3<f64> {
+        let [x, y, heading] = self.waypoints[i];
+        match chassis_m {
+            Some(length_m) => chassis_pose(terrain, x, y, heading, mount_height_m, length_m),
+            None => level_pose(terrain, x, y, heading, mount_height_m),
+        }
+    }
 }
 
 /// A level sensor over map (x, y), yawed to `heading`, `mount_height_m` above the ground there
@@ -50,6 +66,49 @@ pub fn level_pose(terrain: &Heightmap, x: f64, y: f64, heading: f64, mount_heigh
     Isometry3::from_parts(
         Translation3::new(x, y, ground + mount_height_m),
         UnitQuaternion::from_euler_angles(0.0, 0.0, heading),
+    )
+}
+
+/// A sensor on a square chassis `length_m` a side centred on map (x, y) and yawed to `heading`,
+/// whose wheels rest on the ground: the chassis takes the plane through the heights under its
+/// four corners (pitch from front against back, roll from left against right) and the sensor
+/// stands `mount_height_m` along the chassis' up axis above that plane's centre. On a 25° slope
+/// a real rover's sensor tilts by as much; [`level_pose`] keeps it level. Heights off the map
+/// are taken as z = 0.
+///
+/// # Panics
+/// If `length_m` is not positive and finite (a caller's misuse).
+pub fn chassis_pose(
+    terrain: &Heightmap,
+    x: f64,
+    y: f64,
+    heading: f64,
+    mount_height_m: f64,
+    length_m: f64,
+) -> Isometry3<f64> {
+    assert!(
+        length_m.is_finite() && length_m > 0.0,
+        "chassis length {length_m} m"
+    );
+    let (s, c) = heading.sin_cos();
+    let half = 0.5 * length_m;
+    let at = |along: f64, across: f64| {
+        terrain
+            .height(x + along * c - across * s, y + along * s + across * c)
+            .unwrap_or(0.0)
+    };
+    let (front_left, front_right) = (at(half, half), at(half, -half));
+    let (back_left, back_right) = (at(-half, half), at(-half, -half));
+    let rise_along = 0.5 * (front_left + front_right - back_left - back_right) / length_m;
+    let rise_across = 0.5 * (front_left + back_left - front_right - back_right) / length_m;
+    let centre = 0.25 * (front_left + front_right + back_left + back_right);
+    let forward = Vector3::new(c, s, rise_along).normalize();
+    let up = forward.cross(&Vector3::new(-s, c, rise_across)).normalize();
+    let left = up.cross(&forward);
+    let rotation = Rotation3::from_basis_unchecked(&[forward, left, up]);
+    Isometry3::from_parts(
+        Translation3::from(Vector3::new(x, y, centre) + up * mount_height_m),
+        UnitQuaternion::from_rotation_matrix(&rotation),
     )
 }
 
@@ -70,5 +129,43 @@ mod tests {
             assert!((d - 1.0).abs() < 1e-9);
         }
         assert!(p.waypoints.iter().all(|w| w[0].abs() < 45.0 && w[1].abs() < 45.0));
+    }
+
+    #[test]
+    fn a_chassis_on_a_slope_tilts_with_it_and_stands_level_on_flat_ground() {
+        let flat = Heightmap::flat(40.0, 0.1, 1.0);
+        let level = chassis_pose(&flat, 2.0, 3.0, 0.7, 0.75, 1.0);
+        let expected = level_pose(&flat, 2.0, 3.0, 0.7, 0.75);
+        assert!((level.translation.vector - expected.translation.vector).norm() < 1e-9);
+        assert!(level.rotation.angle_to(&expected.rotation) < 1e-9);
+
+        // z = 0.5 x: a 26.6° slope rising to +x. Heading along +x pitches the nose up, heading
+        // along +y rolls the chassis; the sensor stands off the slope along its normal.
+        let n = 401;
+        let slope = Heightmap::from_grid(
+            40.0,
+            0.1,
+            (0..n * n).map(|k| 0.5 * (-20.0 + 0.1 * (k % n) as f64)).collect(),
+        );
+        let grade = 0.5f64.atan();
+        let up_hill = chassis_pose(&slope, 1.0, 0.0, 0.0, 0.75, 1.0);
+        let nose = up_hill.rotation * Vector3::x();
+        assert!((nose.z.asin() - grade).abs() < 1e-5, "pitch {}", nose.z.asin());
+        let across = chassis_pose(&slope, 1.0, 0.0, std::f64::consts::FRAC_PI_2, 0.75, 1.0);
+        let nose = across.rotation * Vector3::x();
+        let left = across.rotation * Vector3::y();
+        assert!(
+            nose.z.abs() < 1e-9 && (left.z.asin() + grade).abs() < 1e-5,
+            "roll {}",
+            left.z.asin()
+        );
+        let normal = Vector3::new(-0.5, 0.0, 1.0).normalize();
+        for pose in [up_hill, across] {
+            let foot = pose.translation.vector - normal * 0.75;
+            assert!(
+                (foot - Vector3::new(1.0, 0.0, 0.5)).norm() < 1e-5,
+                "foot {foot:?}"
+            );
+        }
     }
 }

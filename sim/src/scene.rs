@@ -9,11 +9,25 @@ use nalgebra::Vector3;
 pub trait Surface {
     /// Distance along the unit ray `dir` from `origin` to the first hit within `max_range`.
     fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<f64>;
+
+    /// Unit normal of the surface at a hit `p`, where the surface can tell (`None`: a scanner's
+    /// weak-return model treats the hit as met squarely).
+    fn normal(&self, _p: Vector3<f64>) -> Option<Vector3<f64>> {
+        None
+    }
 }
 
 impl Surface for Heightmap {
     fn cast(&self, origin: Vector3<f64>, dir: Vector3<f64>, max_range: f64) -> Option<f64> {
         Heightmap::cast(self, origin, dir, max_range)
+    }
+
+    /// From central differences of the heights one sample apart.
+    fn normal(&self, p: Vector3<f64>) -> Option<Vector3<f64>> {
+        let d = self.resolution();
+        let dx = self.height(p.x + d, p.y)? - self.height(p.x - d, p.y)?;
+        let dy = self.height(p.x, p.y + d)? - self.height(p.x, p.y - d)?;
+        Some(Vector3::new(-dx, -dy, 2.0 * d).normalize())
     }
 }
 

@@ -23,6 +23,12 @@ pub struct ScannerPreset {
     pub range_noise_floor_m: f64,
     /// Height of the sensor above the ground, metres.
     pub mount_height_m: f64,
+    /// Range at which a return from a surface met squarely is just detected, metres (`None`:
+    /// every ray that meets a surface within `max_range_m` returns). The returned power falls as
+    /// cos(incidence) / r², so a surface met at incidence α returns to this range × √cos α:
+    /// grazed ground far out gives nothing back, as on a real device
+    /// ([`ScannerPreset::with_weak_returns`]).
+    pub weak_return_range_m: Option<f64>,
 }
 
 /// Seed-000 / VLP-16 noise: σ = 0.75 cm at 29 m, linear in range.
@@ -62,6 +68,7 @@ impl ScannerPreset {
             range_noise_per_m: SEED000_NOISE_PER_M,
             range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
+            weak_return_range_m: None,
         }
     }
 
@@ -75,6 +82,7 @@ impl ScannerPreset {
             range_noise_per_m: SEED000_NOISE_PER_M,
             range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
+            weak_return_range_m: None,
         }
     }
 
@@ -88,6 +96,7 @@ impl ScannerPreset {
             range_noise_per_m: SEED000_NOISE_PER_M,
             range_noise_floor_m: 0.0,
             mount_height_m: 0.75,
+            weak_return_range_m: None,
         }
     }
 
@@ -115,6 +124,34 @@ impl ScannerPreset {
             range_noise_floor_m,
             ..self
         }
+    }
+
+    /// This preset losing the returns too weak to detect: a surface met squarely returns up to
+    /// `range_m`, one met at incidence α up to `range_m` √cos α
+    /// ([`ScannerPreset::weak_return_range_m`]).
+    ///
+    /// # Panics
+    /// If `range_m` is not positive and finite (a caller's misuse).
+    pub fn with_weak_returns(self, range_m: f64) -> Self {
+        assert!(
+            range_m.is_finite() && range_m > 0.0,
+            "weak-return range {range_m} m"
+        );
+        Self {
+            weak_return_range_m: Some(range_m),
+            ..self
+        }
+    }
+
+    /// Whether a hit at range `r_m` whose surface normal is `normal` (against the unit ray
+    /// `dir`; `None`: met squarely) is strong enough to return
+    /// ([`ScannerPreset::weak_return_range_m`]): what the scanner sees, for evaluations that
+    /// tell seen ground from unseen.
+    pub fn detects(&self, r_m: f64, dir: &Vector3<f64>, normal: Option<Vector3<f64>>) -> bool {
+        self.weak_return_range_m.is_none_or(|range| {
+            let cos = normal.map_or(1.0, |n| n.dot(dir).abs());
+            r_m <= range * cos.sqrt()
+        })
     }
 
     /// Range noise standard deviation at range `r_m`, metres.
@@ -232,9 +269,11 @@ fn cast_one<S: Surface + ?Sized, R: Rng>(
     rng: &mut R,
 ) -> SimRay {
     let dir = pose.rotation * direction(inc, az);
+    let origin = pose.translation.vector;
     let true_range = surface
-        .cast(pose.translation.vector, dir, preset.max_range_m)
-        .filter(|&r| r < preset.max_range_m);
+        .cast(origin, dir, preset.max_range_m)
+        .filter(|&r| r < preset.max_range_m)
+        .filter(|&r| preset.detects(r, &dir, surface.normal(origin + dir * r)));
     let measured = true_range.map(|r| r + preset.range_noise_sd(r) * standard_normal(rng));
     SimRay {
         ring: ring as u16,
@@ -310,6 +349,47 @@ mod tests {
         }
         let returned = rays.iter().filter(|r| r.true_range_m.is_some()).count();
         assert!(returned > 600 && returned < rays.len());
+    }
+
+    #[test]
+    fn weak_returns_lose_grazed_ground_far_out_and_keep_it_near() {
+        // Flat ground 0.75 m below: a ring b below the horizon meets it at 0.75 / sin b and at
+        // incidence 90° − b, so it returns while 0.75 / sin b ≤ 100 √(sin b).
+        let terrain = Heightmap::flat(200.0, 0.1, 0.0);
+        let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
+        let preset = ScannerPreset::vlp16().with_weak_returns(100.0);
+        let rays = simulate_scan(&terrain, &pose, &preset, &mut Pcg64::seed_from_u64(2));
+        let (mut kept, mut lost) = (0, 0);
+        for r in rays
+            .iter()
+            .filter(|r| r.inclination_rad > std::f64::consts::FRAC_PI_2)
+        {
+            let below = r.inclination_rad - std::f64::consts::FRAC_PI_2;
+            let strong = 0.75 / below.sin() <= 100.0 * below.sin().sqrt();
+            assert_eq!(
+                r.true_range_m.is_some(),
+                strong,
+                "ring {:.1}° below",
+                below.to_degrees()
+            );
+            if strong {
+                kept += 1;
+            } else {
+                lost += 1;
+            }
+        }
+        // The −1° ring (43 m out) is lost, the seven below it (within 14.3 m) kept.
+        assert_eq!((kept, lost), (7 * 1800, 1800));
+        let every = simulate_scan(
+            &terrain,
+            &pose,
+            &ScannerPreset::vlp16(),
+            &mut Pcg64::seed_from_u64(2),
+        );
+        assert_eq!(
+            every.iter().filter(|r| r.true_range_m.is_some()).count(),
+            8 * 1800
+        );
     }
 
     #[test]

@@ -23,7 +23,7 @@ use rand_pcg::Pcg64;
 use rangegp_proto::msg::Source;
 use rangegp_service::config::Config;
 use rangegp_service::map::{query, MapSnapshot};
-use rangegp_sim::{Heightmap, ScannerPreset};
+use rangegp_sim::{Heightmap, ScannerPreset, Surface};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, BTreeSet};
@@ -447,6 +447,7 @@ fn run_one(
             config: &opts.config,
             scans: scans + (ends - 1) * END_SPACING_SCANS,
             step_m: opts.step_m,
+            chassis_m: opts.chassis_m,
             stop_scans: opts.stop_scans,
             path_seed: seed ^ 0xca1,
             scan_seed: &|i| seed ^ ((i as u64) << 20) ^ 0x5ca,
@@ -547,6 +548,9 @@ pub(super) struct Coverage {
     /// Azimuth span widened by one column step on each side.
     azimuth: (f64, f64),
     max_range_m: f64,
+    /// The scanner, for whether a hit is strong enough to return
+    /// ([`ScannerPreset::detects`]).
+    scanner: ScannerPreset,
 }
 
 impl Coverage {
@@ -562,11 +566,13 @@ impl Coverage {
             inclination: span(&preset.inclinations_rad),
             azimuth: (az_lo - az_step, az_hi + az_step),
             max_range_m: preset.max_range_m,
+            scanner: preset.clone(),
         }
     }
 
     /// Whether the ground point `p` is seen from `pose`: inside the scanner's rings and columns,
-    /// in range, and the first surface along the ray from the sensor is the point itself.
+    /// in range, the first surface along the ray from the sensor is the point itself, and it
+    /// returns the ray (a weak return is lost: [`ScannerPreset::weak_return_range_m`]).
     pub(super) fn sees(&self, terrain: &Heightmap, pose: &Isometry3<f64>, p: [f64; 3]) -> bool {
         let origin = pose.translation.vector;
         let to = Vector3::new(p[0], p[1], p[2]) - origin;
@@ -585,6 +591,8 @@ impl Coverage {
             && terrain
                 .cast(origin, dir, dist + 0.5)
                 .is_some_and(|hit| hit >= dist - 0.05)
+            && (self.scanner.weak_return_range_m.is_none()
+                || self.scanner.detects(dist, &dir, terrain.normal(to + origin)))
     }
 }
 

@@ -26,6 +26,8 @@ pub(super) struct Drive<'a> {
     pub scans: usize,
     /// Distance between consecutive poses, metres (the robot's speed over its scan rate).
     pub step_m: f64,
+    /// Side of the chassis the sensor tilts with, metres (`None`: the sensor stays level).
+    pub chassis_m: Option<f64>,
     /// Scans taken after the drive from where it ended, the robot standing still.
     pub stop_scans: usize,
     /// Seed of the path.
@@ -68,8 +70,25 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         0.25 * drive.step_m,
     );
     let poses: Vec<Isometry3<f64>> = (0..drive.scans + drive.stop_scans)
-        .map(|i| path.pose(terrain, i.min(drive.scans - 1), preset.mount_height_m))
+        .map(|i| {
+            path.pose_on(
+                terrain,
+                i.min(drive.scans - 1),
+                preset.mount_height_m,
+                drive.chassis_m,
+            )
+        })
         .collect();
+    if let Some(side) = drive.chassis_m {
+        let mut tilts: Vec<f64> = poses.iter().map(tilt_deg).collect();
+        tilts.sort_by(f64::total_cmp);
+        eprintln!(
+            "  {} on a {side} m chassis: sensor tilt median {:.1}°, max {:.1}°",
+            preset.name,
+            tilts[tilts.len() / 2],
+            tilts[tilts.len() - 1]
+        );
+    }
     let bar = drive
         .progress
         .then(|| progress::bar(poses.len() as u64, &format!("  {} scans", preset.name)));
@@ -137,6 +156,15 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
     })
 }
 
+/// How far `pose`'s up axis leans from the vertical, degrees.
+fn tilt_deg(pose: &Isometry3<f64>) -> f64 {
+    (pose.rotation * nalgebra::Vector3::z())
+        .z
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
 /// The daemon's σ calibrator as `config` sets it up (none when it turns it off).
 fn calibrator_for(config: &Config) -> Option<Calibrator> {
     config
@@ -184,6 +212,7 @@ mod tests {
             config: &config,
             scans: 3,
             step_m: 1.0,
+            chassis_m: None,
             stop_scans: 0,
             path_seed: 1,
             scan_seed: &|i| i as u64,

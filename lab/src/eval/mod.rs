@@ -100,6 +100,15 @@ pub struct EvalOptions {
     /// a robot whose mount the defaults do not know.
     #[arg(long, value_parser = mount_of)]
     pub mount_m: Option<f64>,
+    /// Side of a square chassis whose wheels rest on the ground in the calibration and layers
+    /// drives, metres: the sensor tilts with the ground under it (default: level on any slope).
+    #[arg(long, value_parser = crate::cli::chassis_side)]
+    pub chassis_m: Option<f64>,
+    /// Range at which every sensor of the calibration and layers drives just detects a surface
+    /// met squarely, metres: grazed ground farther out than this × √cos(incidence) returns
+    /// nothing, as on a real device (default: every ray within the maximum range returns).
+    #[arg(long, value_parser = weak_returns_of)]
+    pub weak_returns_m: Option<f64>,
     /// A DEM to run the calibration and layers evaluations on instead of the sim family.
     #[command(flatten)]
     pub dem: crate::dem::DemArgs,
@@ -107,16 +116,25 @@ pub struct EvalOptions {
 
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
 fn mount_of(s: &str) -> std::result::Result<f64, String> {
-    crate::dem::within(
+    crate::cli::within(
         s,
         |v| (0.2..=5.0).contains(&v),
         "the mount height must lie in [0.2, 5] m",
     )
 }
 
+/// Parses `--weak-returns-m`: a finite range in [1, 1000] m.
+fn weak_returns_of(s: &str) -> std::result::Result<f64, String> {
+    crate::cli::within(
+        s,
+        |v| (1.0..=1000.0).contains(&v),
+        "the weak-return range must lie in [1, 1000] m",
+    )
+}
+
 /// Parses `--step-m`: a finite step in (0, 5] m.
 fn step_of(s: &str) -> std::result::Result<f64, String> {
-    crate::dem::within(s, |v| v > 0.0 && v <= 5.0, "the step must lie in (0, 5] m")
+    crate::cli::within(s, |v| v > 0.0 && v <= 5.0, "the step must lie in (0, 5] m")
 }
 
 /// What `summary.json` holds.
@@ -320,6 +338,11 @@ pub struct FamilyOptions {
     pub ends: usize,
     /// Sensor height above the ground in those drives, metres (`None`: each preset's own).
     pub mount_m: Option<f64>,
+    /// Side of the chassis the sensor tilts with in those drives, metres (`None`: level).
+    pub chassis_m: Option<f64>,
+    /// Range at which those drives' sensors just detect a surface met squarely (`None`: every
+    /// ray within range returns).
+    pub weak_returns_m: Option<f64>,
     /// The DEM the calibration and layers evaluations run on instead of the family (`--dem`).
     pub dem: Option<crate::dem::DemTerrain>,
 }
@@ -336,6 +359,8 @@ impl FamilyOptions {
             scans: None,
             ends: 1,
             mount_m: None,
+            chassis_m: None,
+            weak_returns_m: None,
             dem: None,
         }
     }
@@ -346,10 +371,12 @@ impl FamilyOptions {
         scene::scenes(self.dem.as_ref(), self.quick, quick_names)
     }
 
-    /// `preset` mounted at `--mount-m` when given.
+    /// `preset` mounted at `--mount-m` and losing weak returns beyond `--weak-returns-m`, when
+    /// given.
     pub fn mounted(&self, preset: ScannerPreset) -> ScannerPreset {
         ScannerPreset {
             mount_height_m: self.mount_m.unwrap_or(preset.mount_height_m),
+            weak_return_range_m: self.weak_returns_m.or(preset.weak_return_range_m),
             ..preset
         }
     }
@@ -373,6 +400,8 @@ impl FamilyOptions {
             scans: opts.scans.map(usize::from),
             ends: usize::from(opts.ends),
             mount_m: opts.mount_m,
+            chassis_m: opts.chassis_m,
+            weak_returns_m: opts.weak_returns_m,
             dem: opts.dem.load()?,
         })
     }

@@ -239,6 +239,7 @@ fn run_case(terrain: &Heightmap, preset: &ScannerPreset, opts: &FamilyOptions) -
             config: &opts.config,
             scans,
             step_m: 1.0,
+            chassis_m: None,
             stop_scans: 0,
             path_seed: seed ^ 0x71e,
             scan_seed: &|i| seed ^ ((i as u64) << 24) ^ 0x71e,

@@ -361,6 +361,7 @@ fn run_case(
             config: &opts.config,
             scans: opts.drive_scans(20, 12),
             step_m: opts.step_m,
+            chassis_m: opts.chassis_m,
             stop_scans: opts.stop_scans,
             path_seed: seed ^ 0x1a7e,
             scan_seed: &|i| seed.wrapping_mul(7919) + i as u64,

@@ -450,6 +450,31 @@ mod tests {
     }
 
     #[test]
+    fn ground_past_an_edge_where_the_rays_came_back_empty_is_refused() {
+        // Level ground to x = 6 m, then a drop to 5 m below: the seed-000 scanner's rings that
+        // look past the edge return nothing within its 10 m. Its map extrapolated the level
+        // ground over the drop (and answered 5 m too high); above the highest return in an
+        // azimuth nothing is in view now.
+        let (size, res) = (40.0, 0.05);
+        let n = (size / res) as usize + 1;
+        let z: Vec<f64> = (0..n * n)
+            .map(|k| (-4.0 * ((k % n) as f64 * res - size / 2.0 - 6.0)).clamp(-5.0, 0.0))
+            .collect();
+        let terrain = Heightmap::from_grid(size, res, z);
+        let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
+        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let near = map.elevation(4.0, 0.5).expect("level ground before the edge");
+        assert!(near.z.abs() < 0.01, "z {} before the edge", near.z);
+        for (x, y) in [(8.0, 0.0), (9.0, 1.0), (7.5, -2.0)] {
+            assert!(
+                map.elevation(x, y).is_none(),
+                "({x}, {y}), 5 m down, answered {:?}",
+                map.elevation(x, y).map(|e| e.z)
+            );
+        }
+    }
+
+    #[test]
     fn the_ground_under_the_robot_and_the_rise_of_ground_off_its_level() {
         // A plane falling 5 % along x, the sensor 1.1 m above it (the prior assumes 0.75 m:
         // the ground is read from the returns, not from the config), tilted 3° about y.
