@@ -88,6 +88,7 @@ fn sphere_params(kernel: Kernel) -> MapParams {
         jitter: JitterPolicy::default(),
         variance_calibration: rangegp_service::map::tiles::VarianceCalibration::None,
         index_data: false,
+        view_ceiling: false,
     }
 }
 

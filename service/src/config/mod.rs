@@ -194,6 +194,7 @@ impl Config {
             jitter: JitterPolicy::default(),
             variance_calibration: g.variance_calibration,
             index_data: g.prequential_calibration,
+            view_ceiling: g.view_ceiling,
         }
     }
 }

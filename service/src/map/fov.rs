@@ -29,8 +29,8 @@ pub struct FieldOfView {
     /// The arc's ends as unit (x, y) directions, start first: the arc test on cross products.
     arc_ends: [[f64; 2]; 2],
     /// Per azimuth sector ([`CEILING_SECTORS`] even in the diamond angle), the largest z / ‖v‖
-    /// in view ([`Self::covering`]); interpolated between sector centres.
-    ceiling: Arc<[f32]>,
+    /// in view ([`Self::covering`]); interpolated between sector centres. `None`: no ceiling.
+    ceiling: Option<Arc<[f32]>>,
 }
 
 impl FieldOfView {
@@ -44,8 +44,8 @@ impl FieldOfView {
     /// none. So the view also ends, in each azimuth, half a ring spacing above the
     /// highest return there (the spacing is the median gap between the distinct inclinations;
     /// at least `margin`); between the sectors that hold returns the ceiling is interpolated.
-    /// Panics on empty input.
-    pub fn covering(angles: &[(f64, f64)], margin: f64) -> Self {
+    /// Without `ceiling` the view is the band and the arc alone. Panics on empty input.
+    pub fn covering(angles: &[(f64, f64)], margin: f64, ceiling: bool) -> Self {
         assert!(!angles.is_empty(), "a field of view needs at least one ray");
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         // (azimuth in [0, 2π), inclination) by azimuth.
@@ -82,7 +82,8 @@ impl FieldOfView {
             cos_band: (inclination.1.cos(), inclination.0.cos()),
             azimuth_width,
             arc_ends: [[azimuth_start.cos(), azimuth_start.sin()], [end.cos(), end.sin()]],
-            ceiling: ceiling(&columns, (CEILING_RINGS * ring_spacing(angles)).max(margin)),
+            ceiling: ceiling
+                .then(|| ceiling_of(&columns, (CEILING_RINGS * ring_spacing(angles)).max(margin))),
         }
     }
 
@@ -112,17 +113,22 @@ impl FieldOfView {
                 after_start || before_end
             }
         };
-        in_arc && c <= self.ceiling_at(v[0], v[1]) + CEILING_TOLERANCE
+        in_arc
+            && self
+                .ceiling
+                .as_ref()
+                .is_none_or(|top| c <= ceiling_at(top, v[0], v[1]) + CEILING_TOLERANCE)
     }
+}
 
-    /// The largest z / ‖v‖ in view in the azimuth of (x, y): linear between sector centres.
-    fn ceiling_at(&self, x: f64, y: f64) -> f64 {
-        let n = self.ceiling.len();
-        let f = (diamond(x, y) * n as f64 / 4.0 - 0.5).rem_euclid(n as f64);
-        let i = (f.floor() as usize).min(n - 1);
-        let w = f - i as f64;
-        f64::from(self.ceiling[i]) * (1.0 - w) + f64::from(self.ceiling[(i + 1) % n]) * w
-    }
+/// The largest z / ‖v‖ under the sectors' ceiling `top` in the azimuth of (x, y): linear
+/// between sector centres.
+fn ceiling_at(top: &[f32], x: f64, y: f64) -> f64 {
+    let n = top.len();
+    let f = (diamond(x, y) * n as f64 / 4.0 - 0.5).rem_euclid(n as f64);
+    let i = (f.floor() as usize).min(n - 1);
+    let w = f - i as f64;
+    f64::from(top[i]) * (1.0 - w) + f64::from(top[(i + 1) % n]) * w
 }
 
 /// The diamond angle of (x, y), in [0, 4): increasing with the azimuth from +x as the angle
@@ -165,7 +171,7 @@ fn ring_spacing(angles: &[(f64, f64)]) -> f64 {
 /// azimuth) there less `lift`): the largest z / ‖v‖ in view; sectors without returns take the
 /// linear interpolation between the nearest sectors with returns on either side (around the
 /// circle).
-fn ceiling(columns: &[(f64, f64)], lift: f64) -> Arc<[f32]> {
+fn ceiling_of(columns: &[(f64, f64)], lift: f64) -> Arc<[f32]> {
     let n = CEILING_SECTORS;
     let mut top = vec![f64::NAN; n];
     for &(t, p) in columns {
@@ -199,7 +205,9 @@ mod tests {
         inclination >= fov.inclination.0
             && inclination <= fov.inclination.1
             && (azimuth - start).rem_euclid(TAU) <= fov.azimuth_width
-            && inclination.cos() <= fov.ceiling_at(azimuth.cos(), azimuth.sin()) + CEILING_TOLERANCE
+            && fov.ceiling.as_deref().is_none_or(|top| {
+                inclination.cos() <= ceiling_at(top, azimuth.cos(), azimuth.sin()) + CEILING_TOLERANCE
+            })
     }
 
     fn sees(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {
@@ -208,12 +216,12 @@ mod tests {
 
     #[test]
     fn forward_arc_and_wrapping_arc() {
-        let fwd = FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01);
+        let fwd = FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01, true);
         assert!(sees(&fwd, 1.75, 1.0) && !sees(&fwd, 1.75, 3.0) && !sees(&fwd, 1.5, 0.0));
-        let back = FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0);
+        let back = FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0, true);
         assert!(sees(&back, 1.6, 3.1) && sees(&back, 1.6, -3.1) && !sees(&back, 1.6, 0.0));
         let full: Vec<(f64, f64)> = (0..360).map(|i| (1.6, (i as f64).to_radians() - PI)).collect();
-        let full = FieldOfView::covering(&full, 0.01);
+        let full = FieldOfView::covering(&full, 0.01, true);
         assert!(sees(&full, 1.6, 0.123) && !sees(&full, 1.3, 0.123));
         assert!((full.inclination().1 - full.inclination().0 - 0.02).abs() < 1e-12);
     }
@@ -246,7 +254,7 @@ mod tests {
             };
             angles.extend(rings.map(|ring| (1.6 + 0.1 * ring as f64, azimuth)));
         }
-        let fov = FieldOfView::covering(&angles, 0.01);
+        let fov = FieldOfView::covering(&angles, 0.01, true);
         assert!(fov.azimuth_width >= TAU, "a full turn");
         assert!(
             sees(&fov, 1.62, -1.0) && sees(&fov, 1.62, 1.0),
@@ -258,7 +266,13 @@ mod tests {
         // falls linearly: no step for a query's line to flicker across.
         let before = -1f64.to_radians();
         assert!(sees(&fov, 1.6, before) && !sees(&fov, 1.6, 0.1));
-        let at = |azimuth: f64| fov.ceiling_at(azimuth.cos(), azimuth.sin());
+        let at = |azimuth: f64| {
+            ceiling_at(
+                fov.ceiling.as_deref().expect("a ceiling"),
+                azimuth.cos(),
+                azimuth.sin(),
+            )
+        };
         let mid = at(-0.5f64.to_radians());
         assert!(mid < at(before) && mid > at(0.1));
     }
@@ -267,9 +281,9 @@ mod tests {
     fn vector_test_agrees_with_the_angle_test() {
         use crate::gp::sphere::{angles_of, to_sphere};
         let fovs = [
-            FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01),
-            FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0),
-            FieldOfView::covering(&[(1.2, -PI), (1.9, 0.0), (1.5, 2.0), (1.5, -2.0)], 0.05),
+            FieldOfView::covering(&[(1.6, -1.5), (1.8, 1.5), (1.7, 0.0)], 0.01, true),
+            FieldOfView::covering(&[(1.6, 3.0), (1.6, -3.0)], 0.0, true),
+            FieldOfView::covering(&[(1.2, -PI), (1.9, 0.0), (1.5, 2.0), (1.5, -2.0)], 0.05, true),
         ];
         let mut disagreements = 0;
         for fov in &fovs {

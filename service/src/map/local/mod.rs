@@ -95,6 +95,9 @@ pub struct MapParams {
     /// answers carry their distance from data (what the unseen relief needs; without it every
     /// answer counts as [`super::data_index::MAX_DATA_DISTANCE_M`] from data, at no cost).
     pub index_data: bool,
+    /// End the view half a ring above the scan's highest return in each azimuth
+    /// ([`FieldOfView::covering`]; `gp.view_ceiling`).
+    pub view_ceiling: bool,
 }
 
 /// Why a scan could not be turned into a map.
@@ -238,7 +241,7 @@ impl LocalRangeMap {
             prior,
             target: params.target,
             max_range: scan.max_range_m,
-            fov: FieldOfView::covering(&angles, 0.25f64.to_radians()),
+            fov: FieldOfView::covering(&angles, 0.25f64.to_radians(), params.view_ceiling),
             gp: Arc::new(gp),
             generation: 0,
             length_scale: params.kernel.length_scale,
@@ -452,9 +455,9 @@ mod tests {
     #[test]
     fn ground_past_an_edge_where_the_rays_came_back_empty_is_refused() {
         // Level ground to x = 6 m, then a drop to 5 m below: the seed-000 scanner's rings that
-        // look past the edge return nothing within its 10 m. Its map extrapolated the level
-        // ground over the drop (and answered 5 m too high); above the highest return in an
-        // azimuth nothing is in view now.
+        // look past the edge return nothing within its 10 m. Its map carries the level ground
+        // over the drop (and answers 5 m too high); with the view's ceiling (`gp.view_ceiling`)
+        // nothing above the highest return in an azimuth is in view.
         let (size, res) = (40.0, 0.05);
         let n = (size / res) as usize + 1;
         let z: Vec<f64> = (0..n * n)
@@ -462,7 +465,15 @@ mod tests {
             .collect();
         let terrain = Heightmap::from_grid(size, res, z);
         let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
-        let map = LocalRangeMap::fit(&scan_of(&terrain, pose), &params()).expect("fit");
+        let scan = scan_of(&terrain, pose);
+        let open = LocalRangeMap::fit(&scan, &params()).expect("fit");
+        let far = open.elevation(8.0, 0.0).expect("carried over the drop");
+        assert!(far.z.abs() < 0.1, "without the ceiling z {} at (8, 0)", far.z);
+        let params = MapParams {
+            view_ceiling: true,
+            ..params()
+        };
+        let map = LocalRangeMap::fit(&scan, &params).expect("fit");
         let near = map.elevation(4.0, 0.5).expect("level ground before the edge");
         assert!(near.z.abs() < 0.01, "z {} before the edge", near.z);
         for (x, y) in [(8.0, 0.0), (9.0, 1.0), (7.5, -2.0)] {
