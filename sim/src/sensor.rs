@@ -143,13 +143,18 @@ impl ScannerPreset {
         }
     }
 
-    /// Whether a hit at range `r_m` whose surface normal is `normal` (against the unit ray
-    /// `dir`; `None`: met squarely) is strong enough to return
+    /// Whether a hit at range `r_m` whose surface normal `normal` gives (against the unit ray
+    /// `dir`; `None`: met squarely; asked only when returns can be weak) is strong enough to return
     /// ([`ScannerPreset::weak_return_range_m`]): what the scanner sees, for evaluations that
     /// tell seen ground from unseen.
-    pub fn detects(&self, r_m: f64, dir: &Vector3<f64>, normal: Option<Vector3<f64>>) -> bool {
+    pub fn detects(
+        &self,
+        r_m: f64,
+        dir: &Vector3<f64>,
+        normal: impl FnOnce() -> Option<Vector3<f64>>,
+    ) -> bool {
         self.weak_return_range_m.is_none_or(|range| {
-            let cos = normal.map_or(1.0, |n| n.dot(dir).abs());
+            let cos = normal().map_or(1.0, |n| n.dot(dir).abs());
             r_m <= range * cos.sqrt()
         })
     }
@@ -273,7 +278,7 @@ fn cast_one<S: Surface + ?Sized, R: Rng>(
     let true_range = surface
         .cast(origin, dir, preset.max_range_m)
         .filter(|&r| r < preset.max_range_m)
-        .filter(|&r| preset.detects(r, &dir, surface.normal(origin + dir * r)));
+        .filter(|&r| preset.detects(r, &dir, || surface.normal(origin + dir * r)));
     let measured = true_range.map(|r| r + preset.range_noise_sd(r) * standard_normal(rng));
     SimRay {
         ring: ring as u16,

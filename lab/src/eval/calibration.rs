@@ -591,8 +591,7 @@ impl Coverage {
             && terrain
                 .cast(origin, dir, dist + 0.5)
                 .is_some_and(|hit| hit >= dist - 0.05)
-            && (self.scanner.weak_return_range_m.is_none()
-                || self.scanner.detects(dist, &dir, terrain.normal(to + origin)))
+            && self.scanner.detects(dist, &dir, || terrain.normal(to + origin))
     }
 }
 

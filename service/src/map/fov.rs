@@ -17,8 +17,9 @@ const CEILING_RINGS: f64 = 0.5;
 /// Slack of the ceiling test on z / ‖v‖, above the ceiling's f32 rounding.
 const CEILING_TOLERANCE: f64 = 1e-6;
 
-/// Inclination interval × azimuth arc (the arc may wrap through ±π), under a ceiling: in each
-/// azimuth no higher than half way to the ring above the scan's highest return there.
+/// Inclination interval × azimuth arc (the arc may wrap through ±π), optionally under a
+/// ceiling: in each azimuth no higher than half way to the ring above the scan's highest return
+/// there (`gp.view_ceiling`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FieldOfView {
     inclination: (f64, f64),
@@ -41,10 +42,10 @@ impl FieldOfView {
     /// The angles are a scan's returns, so above the highest of them in an azimuth the rays
     /// came back empty: nothing lies there within range, and a map that continued its surface
     /// into that sky (from a hill's returns beside it, say) would put ground where there is
-    /// none. So the view also ends, in each azimuth, half a ring spacing above the
+    /// none. With `ceiling` the view also ends, in each azimuth, half a ring spacing above the
     /// highest return there (the spacing is the median gap between the distinct inclinations;
     /// at least `margin`); between the sectors that hold returns the ceiling is interpolated.
-    /// Without `ceiling` the view is the band and the arc alone. Panics on empty input.
+    /// Without it the view is the band and the arc alone. Panics on empty input.
     pub fn covering(angles: &[(f64, f64)], margin: f64, ceiling: bool) -> Self {
         assert!(!angles.is_empty(), "a field of view needs at least one ray");
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -64,11 +65,6 @@ impl FieldOfView {
                 start = w[1].0;
             }
         }
-        // Each column's highest return: (its inclination, the azimuth).
-        let columns: Vec<(f64, f64)> = rays
-            .chunk_by(|a, b| a.0 == b.0)
-            .map(|run| (run.iter().map(|r| r.1).fold(f64::INFINITY, f64::min), run[0].0))
-            .collect();
         let width = TAU - gap;
         let (azimuth_start, azimuth_width) = if width + 2.0 * margin >= TAU - 1e-9 {
             (0.0, TAU)
@@ -82,8 +78,14 @@ impl FieldOfView {
             cos_band: (inclination.1.cos(), inclination.0.cos()),
             azimuth_width,
             arc_ends: [[azimuth_start.cos(), azimuth_start.sin()], [end.cos(), end.sin()]],
-            ceiling: ceiling
-                .then(|| ceiling_of(&columns, (CEILING_RINGS * ring_spacing(angles)).max(margin))),
+            ceiling: ceiling.then(|| {
+                // Each column's highest return: (its inclination, the azimuth).
+                let columns: Vec<(f64, f64)> = rays
+                    .chunk_by(|a, b| a.0 == b.0)
+                    .map(|run| (run.iter().map(|r| r.1).fold(f64::INFINITY, f64::min), run[0].0))
+                    .collect();
+                ceiling_of(&columns, (CEILING_RINGS * ring_spacing(angles)).max(margin))
+            }),
         }
     }
 
