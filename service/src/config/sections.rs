@@ -225,11 +225,10 @@ pub struct GpConfig {
     /// prequential calibration (docs/EVALUATION.md "Calibration", step 9).
     pub view_disagreement: f64,
     /// End each map's view half a ring above its scan's highest return in each azimuth, so that
-    /// answers a map would carry into the sky there (where its rays came back empty) are refused
-    /// and the next map answers. Off by default: on the full calibration matrix it lowers window
-    /// RMSE (0.234 → 0.208 m) and it refuses ground past a cliff that the maps answer 5 m off
-    /// without it, but the planner layers' quick form found more unsafe path cells with it
-    /// (0.0225 → 0.0275; docs/EVALUATION.md "Calibration", step 29).
+    /// an answer a map would carry into the sky there (where its rays came back empty) is
+    /// refused and the next map answers; it never moves an answer. On by default: window RMSE
+    /// 0.234 → 0.207 m on the full calibration matrix, ground past a cliff that the maps answer
+    /// 5 m off without it refused (docs/EVALUATION.md "Calibration", steps 29–30).
     pub view_ceiling: bool,
 }
 
@@ -399,7 +398,7 @@ impl Default for GpConfig {
             variance_calibration: crate::map::tiles::VarianceCalibration::LocalLeaveOneOut,
             prequential_calibration: true,
             unseen_relief: false,
-            view_ceiling: false,
+            view_ceiling: true,
             view_disagreement: crate::map::calibration::DEFAULT_VIEW_DISAGREEMENT,
         }
     }

@@ -94,18 +94,28 @@ impl FieldOfView {
         self.inclination
     }
 
-    /// True when the sensor-frame vector `v` of length `norm` (> 0) points inside, with no
-    /// inverse trigonometry (the membership test of every search along a line): the band on
-    /// z / ‖v‖, the arc on the signs of v's cross products with its ends. v lies counter-
-    /// clockwise of the start by at most π when the first is non-negative, and clockwise of the
-    /// end by at most π when the second is: an arc up to π wide holds v when both hold, a wider
-    /// one unless both fail (v is then in the complement, narrower than π).
-    pub fn contains_vector(&self, v: &[f64; 3], norm: f64) -> bool {
+    /// True when the sensor-frame vector `v` of length `norm` (> 0) lies under the ceiling (or
+    /// the view has none): the test of a crossing a search found in the band.
+    pub fn under_ceiling(&self, v: &[f64; 3], norm: f64) -> bool {
+        self.ceiling
+            .as_ref()
+            .is_none_or(|top| v[2] / norm <= ceiling_at(top, v[0], v[1]) + CEILING_TOLERANCE)
+    }
+
+    /// True when the sensor-frame vector `v` of length `norm` (> 0) lies in the band and the
+    /// arc, the ceiling aside, with no inverse trigonometry (the membership test of every
+    /// search along a line, so that a crossing the map carried into the sky above the scan's
+    /// returns is found, and refused, rather than stepped over to whatever the map puts below
+    /// it): the band on z / ‖v‖, the arc on the signs of v's cross products with its ends. v
+    /// lies counter-clockwise of the start by at most π when the first is non-negative, and
+    /// clockwise of the end by at most π when the second is: an arc up to π wide holds v when
+    /// both hold, a wider one unless both fail (v is then in the complement, narrower than π).
+    pub fn band_holds(&self, v: &[f64; 3], norm: f64) -> bool {
         let c = v[2] / norm;
         if c < self.cos_band.0 || c > self.cos_band.1 {
             return false;
         }
-        let in_arc = self.azimuth_width >= TAU || {
+        self.azimuth_width >= TAU || {
             let [s, e] = self.arc_ends;
             let after_start = s[0] * v[1] - s[1] * v[0] >= 0.0;
             let before_end = v[0] * e[1] - v[1] * e[0] >= 0.0;
@@ -114,12 +124,7 @@ impl FieldOfView {
             } else {
                 after_start || before_end
             }
-        };
-        in_arc
-            && self
-                .ceiling
-                .as_ref()
-                .is_none_or(|top| c <= ceiling_at(top, v[0], v[1]) + CEILING_TOLERANCE)
+        }
     }
 }
 
@@ -212,8 +217,13 @@ mod tests {
             })
     }
 
+    /// The vector test: in the band and the arc, and under the ceiling.
+    fn inside(fov: &FieldOfView, v: &[f64; 3], norm: f64) -> bool {
+        fov.band_holds(v, norm) && fov.under_ceiling(v, norm)
+    }
+
     fn sees(fov: &FieldOfView, inclination: f64, azimuth: f64) -> bool {
-        fov.contains_vector(&crate::gp::sphere::to_sphere(inclination, azimuth, 2.0), 2.0)
+        inside(fov, &crate::gp::sphere::to_sphere(inclination, azimuth, 2.0), 2.0)
     }
 
     #[test]
@@ -294,7 +304,7 @@ mod tests {
                     let (t, p) = (PI * i as f64 / 90.0, -PI + TAU * j as f64 / 180.0);
                     let v = to_sphere(t, p, 3.7);
                     let (t2, p2) = angles_of(v);
-                    disagreements += usize::from(contains(fov, t2, p2) != fov.contains_vector(&v, 3.7));
+                    disagreements += usize::from(contains(fov, t2, p2) != inside(fov, &v, 3.7));
                 }
             }
         }

@@ -23,7 +23,7 @@ pub(crate) fn params() -> MapParams {
         jitter: JitterPolicy::default(),
         variance_calibration: crate::map::tiles::VarianceCalibration::None,
         index_data: true,
-        view_ceiling: false,
+        view_ceiling: true,
     }
 }
 

@@ -372,18 +372,29 @@ impl LocalRangeMap {
     /// Sensor-frame vector to map point `p` and its length, if inside the observed field of
     /// view (no inverse trigonometry: the membership test of every search).
     fn sensor_vector(&self, p: &Vector3<f64>) -> Option<([f64; 3], f64)> {
-        self.in_view(
-            self.pose
-                .rotation
-                .inverse_transform_vector(&(p - self.sensor_position())),
-        )
+        self.in_view(self.to_sensor(p))
+    }
+
+    /// Map point `p` as a sensor-frame vector from the sensor.
+    fn to_sensor(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.pose
+            .rotation
+            .inverse_transform_vector(&(p - self.sensor_position()))
     }
 
     /// Sensor-frame vector `q` and its length, if inside the observed field of view.
     fn in_view(&self, q: Vector3<f64>) -> Option<([f64; 3], f64)> {
+        self.in_band(q)
+            .filter(|(v, dist)| self.fov.under_ceiling(v, *dist))
+    }
+
+    /// [`Self::in_view`] without the view's ceiling ([`FieldOfView::band_holds`]): where the
+    /// searches for a first crossing run, so one the map carried into the sky is found and then
+    /// refused by the view at the crossing.
+    fn in_band(&self, q: Vector3<f64>) -> Option<([f64; 3], f64)> {
         let dist = q.norm();
         let v = [q.x, q.y, q.z];
-        (dist > 1e-9 && dist <= self.max_range && self.fov.contains_vector(&v, dist)).then_some((v, dist))
+        (dist > 1e-9 && dist <= self.max_range && self.fov.band_holds(&v, dist)).then_some((v, dist))
     }
 
     /// Signed gap `‖p − s‖ − μ(angles of p)` of map point `p`, metres: how far it lies behind
@@ -391,11 +402,22 @@ impl LocalRangeMap {
     /// scan saw through), or `None` outside its field of view; also whether this view agrees with
     /// a surface another map put at `p`.
     pub fn gap(&self, p: &Vector3<f64>) -> Option<f64> {
-        let (v, dist) = self.sensor_vector(p)?;
+        self.sensor_vector(p).map(|(v, dist)| self.gap_of(v, dist))
+    }
+
+    /// [`Self::gap`] wherever the band and arc hold, above the view's ceiling too: the gap a
+    /// search for the first crossing steps along.
+    fn search_gap(&self, p: &Vector3<f64>) -> Option<f64> {
+        self.in_band(self.to_sensor(p))
+            .map(|(v, dist)| self.gap_of(v, dist))
+    }
+
+    /// The gap of the sensor-frame vector `v` of length `dist`.
+    fn gap_of(&self, v: [f64; 3], dist: f64) -> f64 {
         let (inc, az) = sphere::angles_of(v);
         // The direction is v / ‖v‖: no sine or cosine of the angles just taken.
         let u = Vector3::new(v[0] / dist, v[1] / dist, v[2] / dist);
-        Some(dist - self.mean_range_along(inc, az, &u))
+        dist - self.mean_range_along(inc, az, &u)
     }
 
     /// Delta-method variance of `root` (at map point `p`) of `gap`.
@@ -420,9 +442,9 @@ fn unit(inclination: f64, azimuth: f64) -> Vector3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::test_support::{params, scan_of};
+    use crate::map::test_support::{self, params, scan_of};
     use nalgebra::{Translation3, UnitQuaternion};
-    use rangegp_sim::{CraterParams, Heightmap};
+    use rangegp_sim::{CraterParams, Heightmap, ScannerPreset};
 
     #[test]
     fn provenance_grades_distance_against_the_correlation_length() {
@@ -456,8 +478,9 @@ mod tests {
     fn ground_past_an_edge_where_the_rays_came_back_empty_is_refused() {
         // Level ground to x = 6 m, then a drop to 5 m below: the seed-000 scanner's rings that
         // look past the edge return nothing within its 10 m. Its map carries the level ground
-        // over the drop (and answers 5 m too high); with the view's ceiling (`gp.view_ceiling`)
-        // nothing above the highest return in an azimuth is in view.
+        // over the drop (and answers 5 m too high) unless the view has its ceiling
+        // (`gp.view_ceiling`, the default): nothing above the highest return in an azimuth is in
+        // view.
         let (size, res) = (40.0, 0.05);
         let n = (size / res) as usize + 1;
         let z: Vec<f64> = (0..n * n)
@@ -466,14 +489,14 @@ mod tests {
         let terrain = Heightmap::from_grid(size, res, z);
         let pose = Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.75), UnitQuaternion::identity());
         let scan = scan_of(&terrain, pose);
-        let open = LocalRangeMap::fit(&scan, &params()).expect("fit");
-        let far = open.elevation(8.0, 0.0).expect("carried over the drop");
-        assert!(far.z.abs() < 0.1, "without the ceiling z {} at (8, 0)", far.z);
-        let params = MapParams {
-            view_ceiling: true,
+        let open = MapParams {
+            view_ceiling: false,
             ..params()
         };
-        let map = LocalRangeMap::fit(&scan, &params).expect("fit");
+        let open = LocalRangeMap::fit(&scan, &open).expect("fit");
+        let far = open.elevation(8.0, 0.0).expect("carried over the drop");
+        assert!(far.z.abs() < 0.1, "without the ceiling z {} at (8, 0)", far.z);
+        let map = LocalRangeMap::fit(&scan, &params()).expect("fit");
         let near = map.elevation(4.0, 0.5).expect("level ground before the edge");
         assert!(near.z.abs() < 0.01, "z {} before the edge", near.z);
         for (x, y) in [(8.0, 0.0), (9.0, 1.0), (7.5, -2.0)] {
@@ -483,6 +506,49 @@ mod tests {
                 map.elevation(x, y).map(|e| e.z)
             );
         }
+    }
+
+    #[test]
+    fn the_ceiling_only_refuses_answers_it_never_moves_one() {
+        // Rough relief seen by a VLP-16: the searches run in the band and the arc, and a first
+        // crossing above the ceiling is refused, not replaced by a crossing lower down the line
+        // (which, past a crest, is the foot of the map's ramp over the shadow). So every answer
+        // with the ceiling is the answer without it, and the ceiling refuses some.
+        let terrain = test_support::family_terrain("fbm-h08-30deg", 2, 120.0);
+        let ground = terrain.height(0.0, 0.0).expect("the centre lies on the terrain");
+        let pose = Isometry3::translation(0.0, 0.0, ground + 0.75);
+        let scan = test_support::scan_by(&ScannerPreset::vlp16(), &terrain, pose);
+        let params = MapParams {
+            sphere_radius_m: Some(ScannerPreset::vlp16().max_range_m),
+            ..params()
+        };
+        let open = MapParams {
+            view_ceiling: false,
+            ..params
+        };
+        let (map, open) = (
+            LocalRangeMap::fit(&scan, &params).expect("fit"),
+            LocalRangeMap::fit(&scan, &open).expect("fit"),
+        );
+        let (mut same, mut refused) = (0, 0);
+        for i in 0..60 {
+            for j in 0..60 {
+                let (x, y) = (-45.0 + 1.5 * i as f64, -45.0 + 1.5 * j as f64);
+                match (map.elevation(x, y), open.elevation(x, y)) {
+                    (Some(a), Some(b)) => {
+                        assert!(a.z == b.z && a.var == b.var, "({x}, {y}) {} vs {}", a.z, b.z);
+                        same += 1;
+                    }
+                    (Some(a), None) => panic!("({x}, {y}) answered {} only under the ceiling", a.z),
+                    (None, Some(_)) => refused += 1,
+                    (None, None) => {}
+                }
+            }
+        }
+        assert!(
+            same > 1000 && refused > 10,
+            "{same} answered alike, {refused} refused"
+        );
     }
 
     #[test]

@@ -45,7 +45,7 @@ impl LocalRangeMap {
     }
 
     fn first_crossing_down(&self, x: f64, y: f64, top: f64, span: f64) -> Option<HeightEstimate> {
-        let gap = |t: f64| self.gap(&Vector3::new(x, y, top - t));
+        let gap = |t: f64| self.search_gap(&Vector3::new(x, y, top - t));
         // A point `g` short of the surface along its ray (or behind it, for a negative `g`) lies
         // `g · sin(depression)` above where a flat surface below would cross the line: the
         // trace's estimate of the distance left; a ray looking up says nothing of the ground
@@ -173,7 +173,7 @@ impl LocalRangeMap {
             .rotation
             .inverse_transform_vector(&Vector3::new(x - s.x, y - s.y, -s.z));
         let e = self.pose.rotation.inverse_transform_vector(&Vector3::z());
-        let sees_z = |z: f64| self.in_view(a + z * e).is_some();
+        let sees_z = |z: f64| self.in_band(a + z * e).is_some();
         let sees = |psi: f64| sees_z(z_at(psi));
         let step = (0.5 * (band_hi - band_lo)).min(FOV_STEP_RAD);
         let n = ((psi_top - psi_bottom) / step).ceil().max(2.0) as usize;
@@ -217,7 +217,7 @@ impl LocalRangeMap {
     ) -> Option<RayEstimate> {
         let point = |t: f64| origin + dir * t;
         let samples = ((max_range / 0.05).ceil() as usize).clamp(32, 400);
-        let gap = |t: f64| self.gap(&point(t));
+        let gap = |t: f64| self.search_gap(&point(t));
         if let Some(root) = root::first_crossing(gap, 0.0, max_range, samples) {
             let t = root.t;
             let (inc, az, _) = self.look_at(&point(t))?;
