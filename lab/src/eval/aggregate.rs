@@ -31,8 +31,8 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
 
-/// Size of the aggregate experiment.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Size of the aggregate experiment, and the daemon configuration its world aggregate maps with.
+#[derive(Debug, Clone, PartialEq)]
 pub struct AggregateOptions {
     /// Trajectories (seed 000: 5).
     pub trajectories: usize,
@@ -44,6 +44,9 @@ pub struct AggregateOptions {
     pub seed: u64,
     /// Draw the seed-000 aggregate's error map too (slow: a root-find per pixel over every ray).
     pub seed000_picture: bool,
+    /// Daemon configuration of the window maps the world aggregate fuses (`--config`; the
+    /// kernel is the tuned one).
+    pub config: Config,
 }
 
 /// Scores of the three models on one trajectory.
@@ -162,10 +165,9 @@ fn run_trajectory(
             )
         })
         .collect();
-    let config = Config::default();
     let params = MapParams {
         kernel: kernels[0],
-        ..config.map_params()
+        ..opts.config.map_params()
     };
     let mut world = WorldAggregate::new(WorldParams {
         kernel_variance: kernels[2].variance,
@@ -181,7 +183,7 @@ fn run_trajectory(
     });
     let bar = progress::bar(scans.len() as u64, &format!("trajectory {}", index + 1));
     let mut insert_ms = 0.0;
-    let mut scales = ScaleLearner::new(&config);
+    let mut scales = ScaleLearner::new(&opts.config);
     for scan in &scans {
         let local = Arc::new(LocalRangeMap::fit(&scan.train, &params)?);
         scales.observe(&scan.train, Arc::clone(&local), &mut world);
