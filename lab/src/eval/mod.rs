@@ -116,6 +116,16 @@ pub struct EvalOptions {
     pub dem: crate::dem::DemArgs,
 }
 
+impl EvalOptions {
+    /// The daemon configuration of `--config`, else the embedded defaults.
+    fn daemon_config(&self) -> Result<Config> {
+        match &self.config {
+            Some(path) => Ok(Config::load(path)?),
+            None => Ok(Config::default()),
+        }
+    }
+}
+
 /// Parses `--mount-m`: a finite height in [0.2, 5] m.
 fn mount_of(s: &str) -> std::result::Result<f64, String> {
     crate::cli::within(
@@ -275,10 +285,7 @@ pub fn run(opts: &EvalOptions) -> Result<Summary> {
                 tune_scans: if opts.quick { 10 } else { 30 },
                 seed: opts.seed,
                 seed000_picture: !opts.quick,
-                config: match &opts.config {
-                    Some(path) => Config::load(path)?,
-                    None => Config::default(),
-                },
+                config: opts.daemon_config()?,
             },
             &opts.out,
         )?;
@@ -397,10 +404,7 @@ impl FamilyOptions {
         Ok(Self {
             quick: opts.quick,
             seed: opts.seed,
-            config: match &opts.config {
-                Some(path) => Config::load(path)?,
-                None => Config::default(),
-            },
+            config: opts.daemon_config()?,
             step_m: opts.step_m,
             stop_scans: usize::from(opts.stop_scans),
             scans: opts.scans.map(usize::from),

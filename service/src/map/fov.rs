@@ -115,15 +115,16 @@ impl FieldOfView {
         if c < self.cos_band.0 || c > self.cos_band.1 {
             return false;
         }
-        self.azimuth_width >= TAU || {
-            let [s, e] = self.arc_ends;
-            let after_start = s[0] * v[1] - s[1] * v[0] >= 0.0;
-            let before_end = v[0] * e[1] - v[1] * e[0] >= 0.0;
-            if self.azimuth_width <= PI {
-                after_start && before_end
-            } else {
-                after_start || before_end
-            }
+        if self.azimuth_width >= TAU {
+            return true;
+        }
+        let [s, e] = self.arc_ends;
+        let after_start = s[0] * v[1] - s[1] * v[0] >= 0.0;
+        let before_end = v[0] * e[1] - v[1] * e[0] >= 0.0;
+        if self.azimuth_width <= PI {
+            after_start && before_end
+        } else {
+            after_start || before_end
         }
     }
 }
@@ -139,8 +140,8 @@ fn ceiling_at(top: &[f32], x: f64, y: f64) -> f64 {
 }
 
 /// The diamond angle of (x, y), in [0, 4): increasing with the azimuth from +x as the angle
-/// does, with no inverse trigonometry (the ceiling is looked up at every step of a search);
-/// 0 at the origin.
+/// does, with no inverse trigonometry (the ceiling is looked up at every answer, and at every
+/// step of a ray's closest-approach scan); 0 at the origin.
 fn diamond(x: f64, y: f64) -> f64 {
     if x == 0.0 && y == 0.0 {
         0.0
