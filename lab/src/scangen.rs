@@ -163,3 +163,28 @@ pub fn now_ns() -> u64 {
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::SimSensorArgs;
+
+    #[test]
+    fn a_sensor_told_to_lose_weak_returns_sends_fewer_from_the_same_pose() {
+        let returns = |preset: ScannerPreset| {
+            let mut world = ScanGenerator::new(3, 100.0, preset, 2, 1.0);
+            let scan = world.scan(0, 0);
+            scan.points
+                .iter()
+                .filter(|p| p.flags & FLAG_NO_RETURN == 0)
+                .count()
+        };
+        let sensor = |weak_returns_m| SimSensorArgs {
+            weak_returns_m,
+            ..SimSensorArgs::default()
+        };
+        let all = returns(sensor(None).preset(ScannerPreset::vlp16()));
+        let weak = returns(sensor(Some(15.0)).preset(ScannerPreset::vlp16()));
+        assert!(weak > 0 && weak < all, "{weak} of {all} returns kept");
+    }
+}

@@ -4,6 +4,7 @@
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
 use rangegp_client::{Client, ScanPublisher};
+use rangegp_lab::cli::SimSensorArgs;
 use rangegp_lab::dem::DemArgs;
 use rangegp_lab::demo::{self, DemoOptions};
 use rangegp_lab::load::{self, LoadOptions};
@@ -217,10 +218,9 @@ enum Command {
         /// A DEM to drive on instead of the cratered terrain.
         #[command(flatten)]
         dem: DemArgs,
-        /// Side of a square chassis whose wheels rest on the ground, metres: the sensor tilts
-        /// with the slopes it drives (default: level on any slope).
-        #[arg(long, value_parser = rangegp_lab::cli::chassis_side)]
-        chassis_m: Option<f64>,
+        /// How the sensor rides and which returns it loses.
+        #[command(flatten)]
+        sensor: SimSensorArgs,
         /// Compress chunks with zstd.
         #[arg(long)]
         zstd: bool,
@@ -248,10 +248,9 @@ enum Command {
         /// A DEM to drive on instead of the cratered terrain.
         #[command(flatten)]
         dem: DemArgs,
-        /// Side of a square chassis whose wheels rest on the ground, metres: the sensor tilts
-        /// with the slopes it drives (default: level on any slope).
-        #[arg(long, value_parser = rangegp_lab::cli::chassis_side)]
-        chassis_m: Option<f64>,
+        /// How the sensor rides and which returns it loses.
+        #[command(flatten)]
+        sensor: SimSensorArgs,
         /// Publisher id in the scan header.
         #[arg(long, default_value_t = 1)]
         publisher_id: u64,
@@ -541,12 +540,12 @@ fn main() -> Result<()> {
             seed,
             step_m,
             dem,
-            chassis_m,
+            sensor,
             zstd,
         } => {
-            let preset = preset_named(&preset)?;
+            let preset = sensor.preset(preset_named(&preset)?);
             anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
-            let mut world = generator(&dem, seed, preset, count, step_m)?.with_chassis(chassis_m);
+            let mut world = generator(&dem, seed, preset, count, step_m)?.with_chassis(sensor.chassis_m);
             let t0 = now_ns();
             let period_ns = (1e9 / rate_hz) as u64;
             let scans: Vec<_> = (0..count)
@@ -568,13 +567,13 @@ fn main() -> Result<()> {
             seed,
             step_m,
             dem,
-            chassis_m,
+            sensor,
             publisher_id,
         } => {
-            let preset = preset_named(&preset)?;
+            let preset = sensor.preset(preset_named(&preset)?);
             anyhow::ensure!(rate_hz > 0.0, "--rate-hz must be positive");
             let rays = preset.ray_count();
-            let mut world = generator(&dem, seed, preset, count, step_m)?.with_chassis(chassis_m);
+            let mut world = generator(&dem, seed, preset, count, step_m)?.with_chassis(sensor.chassis_m);
             let mut publisher = ScanPublisher::new(&service, publisher_id, rays)?;
             let period = Duration::from_secs_f64(1.0 / rate_hz);
             for i in 0..count {

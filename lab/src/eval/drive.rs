@@ -12,6 +12,7 @@ use rangegp_service::config::Config;
 use rangegp_service::ingest::validate::{validate, ValidationLimits};
 use rangegp_service::map::aggregate::world::{WorldAggregate, WorldParams};
 use rangegp_service::map::calibration::Calibrator;
+use rangegp_service::map::local::tilt_of;
 use rangegp_service::map::{LocalRangeMap, MapSnapshot, Window};
 use rangegp_service::scan::ScanInput;
 use rangegp_sim::{simulate_scan, Heightmap, Path, ScannerPreset};
@@ -80,7 +81,7 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         })
         .collect();
     if let Some(side) = drive.chassis_m {
-        let mut tilts: Vec<f64> = poses.iter().map(tilt_deg).collect();
+        let mut tilts: Vec<f64> = poses.iter().map(|p| tilt_of(p).to_degrees()).collect();
         tilts.sort_by(f64::total_cmp);
         eprintln!(
             "  {} on a {side} m chassis: sensor tilt median {:.1}°, max {:.1}°",
@@ -154,15 +155,6 @@ pub(super) fn map_drive(terrain: &Heightmap, preset: &ScannerPreset, drive: &Dri
         snapshot,
         kept,
     })
-}
-
-/// How far `pose`'s up axis leans from the vertical, degrees.
-fn tilt_deg(pose: &Isometry3<f64>) -> f64 {
-    (pose.rotation * nalgebra::Vector3::z())
-        .z
-        .clamp(-1.0, 1.0)
-        .acos()
-        .to_degrees()
 }
 
 /// The daemon's σ calibrator as `config` sets it up (none when it turns it off).

@@ -109,7 +109,7 @@ pub struct EvalOptions {
     /// Range at which every sensor of the calibration and layers drives just detects a surface
     /// met squarely, metres: grazed ground farther out than this × √cos(incidence) returns
     /// nothing, as on a real device (default: every ray within the maximum range returns).
-    #[arg(long, value_parser = weak_returns_of)]
+    #[arg(long, value_parser = crate::cli::weak_return_range)]
     pub weak_returns_m: Option<f64>,
     /// A DEM to run the calibration and layers evaluations on instead of the sim family.
     #[command(flatten)]
@@ -132,15 +132,6 @@ fn mount_of(s: &str) -> std::result::Result<f64, String> {
         s,
         |v| (0.2..=5.0).contains(&v),
         "the mount height must lie in [0.2, 5] m",
-    )
-}
-
-/// Parses `--weak-returns-m`: a finite range in [1, 1000] m.
-fn weak_returns_of(s: &str) -> std::result::Result<f64, String> {
-    crate::cli::within(
-        s,
-        |v| (1.0..=1000.0).contains(&v),
-        "the weak-return range must lie in [1, 1000] m",
     )
 }
 

@@ -203,8 +203,8 @@ pub struct LocalRangeMap {
     ground: Option<Vector3<f64>>,
 }
 
-/// Angle between a sensor's z axis and the map's, radians.
-fn tilt_of(pose: &Isometry3<f64>) -> f64 {
+/// Angle between a sensor's z axis and the map's, radians: how far a pose leans from level.
+pub fn tilt_of(pose: &Isometry3<f64>) -> f64 {
     (pose.rotation * Vector3::z()).z.clamp(-1.0, 1.0).acos()
 }
 
