@@ -32,8 +32,8 @@ pub fn weak_return_range(s: &str) -> std::result::Result<f64, String> {
     )
 }
 
-/// How a simulated sensor rides and what it fails to return: the options `scangen` and
-/// `record-sim` share.
+/// How a simulated sensor rides and what it fails to return: the options `scangen`,
+/// `record-sim` and `rangegp-eval` (its calibration and layers drives) share.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct SimSensorArgs {
     /// Side of a square chassis whose wheels rest on the ground, metres: the sensor tilts

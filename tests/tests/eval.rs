@@ -19,8 +19,7 @@ fn quick_evaluation_meets_its_bars() -> anyhow::Result<()> {
         scans: None,
         ends: 1,
         mount_m: None,
-        chassis_m: None,
-        weak_returns_m: None,
+        sensor: Default::default(),
         dem: Default::default(),
     })?;
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json"))?)?;

@@ -102,15 +102,9 @@ pub struct EvalOptions {
     /// a robot whose mount the defaults do not know.
     #[arg(long, value_parser = mount_of)]
     pub mount_m: Option<f64>,
-    /// Side of a square chassis whose wheels rest on the ground in the calibration and layers
-    /// drives, metres: the sensor tilts with the ground under it (default: level on any slope).
-    #[arg(long, value_parser = crate::cli::chassis_side)]
-    pub chassis_m: Option<f64>,
-    /// Range at which every sensor of the calibration and layers drives just detects a surface
-    /// met squarely, metres: grazed ground farther out than this × √cos(incidence) returns
-    /// nothing, as on a real device (default: every ray within the maximum range returns).
-    #[arg(long, value_parser = crate::cli::weak_return_range)]
-    pub weak_returns_m: Option<f64>,
+    /// How the sensors of the calibration and layers drives ride and which returns they lose.
+    #[command(flatten)]
+    pub sensor: crate::cli::SimSensorArgs,
     /// A DEM to run the calibration and layers evaluations on instead of the sim family.
     #[command(flatten)]
     pub dem: crate::dem::DemArgs,
@@ -401,8 +395,8 @@ impl FamilyOptions {
             scans: opts.scans.map(usize::from),
             ends: usize::from(opts.ends),
             mount_m: opts.mount_m,
-            chassis_m: opts.chassis_m,
-            weak_returns_m: opts.weak_returns_m,
+            chassis_m: opts.sensor.chassis_m,
+            weak_returns_m: opts.sensor.weak_returns_m,
             dem: opts.dem.load()?,
         })
     }
